@@ -1,0 +1,159 @@
+"""Gaussian-kernel correlation filter in the Fourier domain (NI-SLAM Sec. IV-B).
+
+The key axonometric gray image z is learned once per key frame (Eq. 12); every
+frame then gets the response over all circular shifts in one shot (Eq. 14), its
+peak (Eq. 15) and the peak-to-sidelobe ratio (Eq. 16). Arrays are (H, W) = (rows,
+cols) indexed [v, u]; shifts are (du, dv) in cells, positive = content moved
+right/down in the current image relative to the key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft as sfft
+
+_FFT_WORKERS = 1  # one core for the tracker: the loop, drivers and outputs share the rest
+
+
+@dataclass(frozen=True)
+class Peak:
+    """Response peak: sub-cell shift, raw peak value and PSR (Eq. 16)."""
+
+    du_cells: float
+    dv_cells: float
+    value: float
+    psr: float
+    response_sum: float
+
+
+def rfft2(a: np.ndarray) -> np.ndarray:
+    return sfft.rfft2(a, workers=_FFT_WORKERS)
+
+
+def irfft2(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    return sfft.irfft2(a, s=shape, workers=_FFT_WORKERS)
+
+
+def gaussian_label_spectrum(shape: tuple[int, int], sigma_cells: float) -> np.ndarray:
+    """rfft2 of the regression target y (Eq. 3): a delta at shift 0 as in the
+    paper when sigma is 0, else a narrow circular Gaussian centred at shift 0.
+
+    The label sits at index (0, 0) rather than the image centre so the response
+    peak index *is* the shift (mod size): no fftshift per frame.
+    """
+    h, w = shape
+    if sigma_cells <= 0.0:
+        y = np.zeros(shape, np.float32)
+        y[0, 0] = 1.0
+    else:
+        dv = np.minimum(np.arange(h), h - np.arange(h)).astype(np.float32)
+        du = np.minimum(np.arange(w), w - np.arange(w)).astype(np.float32)
+        y = np.exp(-0.5 * (dv[:, None] ** 2 + du[None, :] ** 2) / sigma_cells**2).astype(np.float32)
+    return rfft2(y)
+
+
+class KernelCorrelationFilter:
+    """Gaussian-kernel ridge regression over all circular shifts (Eqs. 10-14).
+
+    The kernel uses the true squared norms ||x||^2 (Parseval), so k <= 1 and
+    lambda keeps its textbook meaning; the authors' half-spectrum sum instead
+    scales k by a constant factor and with it the effective lambda.
+    """
+
+    def __init__(self, shape: tuple[int, int], sigma: float, lam: float, label_sigma_cells: float):
+        self.shape = shape
+        self.n_cells = shape[0] * shape[1]
+        self.sigma = sigma
+        self.lam = lam
+        self._label_hat = gaussian_label_spectrum(shape, label_sigma_cells)
+        self._z_hat: np.ndarray | None = None
+        self._z_sq = 0.0
+        self._alpha_hat: np.ndarray | None = None
+
+    @property
+    def trained(self) -> bool:
+        return self._alpha_hat is not None
+
+    def _kernel(self, x_hat: np.ndarray, x_sq: float) -> np.ndarray:
+        """k^{xz} over all shifts: exp(-||x - shift(z)||^2 / (sigma^2 N)) (Eq. 11),
+        with the cross term from one inverse FFT (circulant trick, Lemma 1)."""
+        c = irfft2(x_hat * np.conj(self._z_hat), self.shape)
+        dist = np.maximum(x_sq + self._z_sq - 2.0 * c, 0.0)
+        return np.exp(dist * (-1.0 / (self.sigma**2 * self.n_cells)))
+
+    def train(self, z: np.ndarray) -> None:
+        """Learn alpha for key image z (Eq. 12): alpha_hat = y_hat / (k_hat^{zz} + lambda)."""
+        self._z_hat = rfft2(z)
+        self._z_sq = float(np.vdot(z, z))
+        k_zz = self._kernel(self._z_hat, self._z_sq)
+        self._alpha_hat = self._label_hat / (rfft2(k_zz) + self.lam)
+
+    def response(self, x: np.ndarray) -> np.ndarray:
+        """Response over all circular shifts of x (Eq. 14)."""
+        if self._alpha_hat is None:
+            raise RuntimeError("filter used before train()")
+        k_xz = self._kernel(rfft2(x), float(np.vdot(x, x)))
+        return irfft2(self._alpha_hat * rfft2(k_xz), self.shape)
+
+
+def find_peak(
+    response: np.ndarray,
+    exclude_half_cells: int,
+    centre_cells: tuple[float, float] = (0.0, 0.0),
+    radius_cells: int | None = None,
+) -> Peak:
+    """Arg-max refined to sub-cell by a parabola through the peak and its
+    circular neighbours on each axis; PSR (Eq. 16) over the sidelobe, i.e. all
+    cells outside a (2e+1)^2 window around the peak, so the peak's own skirt
+    does not deflate the ratio.
+
+    With `radius_cells`, the arg-max is searched only within that many cells
+    of `centre_cells` (du, dv): a motion prior that keeps a distant look-alike
+    of the scene (repeated texture) from winning.
+    """
+    h, w = response.shape
+    if radius_cells is None or 2 * radius_cells + 1 >= min(h, w):
+        v, u = divmod(int(np.argmax(response)), w)
+    else:
+        cu, cv = int(round(centre_cells[0])), int(round(centre_cells[1]))
+        rows = np.arange(cv - radius_cells, cv + radius_cells + 1) % h
+        cols = np.arange(cu - radius_cells, cu + radius_cells + 1) % w
+        i, j = divmod(int(np.argmax(response[np.ix_(rows, cols)])), len(cols))
+        v, u = int(rows[i]), int(cols[j])
+    r_max = float(response[v, u])
+    dv = _parabolic_offset(response[(v - 1) % h, u], r_max, response[(v + 1) % h, u])
+    du = _parabolic_offset(response[v, (u - 1) % w], r_max, response[v, (u + 1) % w])
+    # Circular shift range is +-size/2 (reference-nislam.md, pitfalls).
+    shift_v = v + dv if v <= h // 2 else v + dv - h
+    shift_u = u + du if u <= w // 2 else u + du - w
+    psr, total = _psr(response, v, u, r_max, exclude_half_cells)
+    return Peak(float(shift_u), float(shift_v), r_max, psr, total)
+
+
+def _parabolic_offset(left: float, centre: float, right: float) -> float:
+    """Vertex of the parabola through three samples; on the logarithms when
+    all are positive (exact for a Gaussian peak, which a narrow Gaussian label
+    gives), which removes most of the pull toward whole cells."""
+    if left > 0.0 and right > 0.0 and centre > 0.0:
+        left, centre, right = np.log(left), np.log(centre), np.log(right)
+    denom = left - 2.0 * centre + right
+    if denom >= 0.0:  # not a strict maximum: no refinement
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / denom, -0.5, 0.5))
+
+
+def _psr(r: np.ndarray, v: int, u: int, r_max: float, e: int) -> tuple[float, float]:
+    h, w = r.shape
+    rows = np.arange(v - e, v + e + 1) % h
+    cols = np.arange(u - e, u + e + 1) % w
+    win = r[np.ix_(rows, cols)]
+    total = float(r.sum(dtype=np.float64))
+    total_sq = float(np.vdot(r, r))
+    n_side = r.size - win.size
+    mean = (total - float(win.sum(dtype=np.float64))) / n_side
+    var = (total_sq - float(np.vdot(win, win))) / n_side - mean * mean
+    if not np.isfinite(var) or var <= 0.0:
+        return 0.0, total
+    return (r_max - mean) / np.sqrt(var), total

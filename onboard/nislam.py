@@ -1,0 +1,545 @@
+"""NI-SLAM tracker: attitude from an AHRS, translation from a kernel correlation
+filter on axonometric images (Wang, Yuan, Xie, "Non-Iterative SLAM", ICAR 2017).
+
+A pure core: arrays in, a `TrackResult` out; no threads, no I/O, no logging
+setup. Equation numbers refer to the paper; section numbers of
+`reference-nislam.md` (the authors' code) are given as "ref. §n".
+
+Per frame (ref. "Per-frame order"):
+  1. attitude R_W_C at the capture time (+ the calibrated time offset),
+  2. rotate the cloud into the key camera's axes and project it (Sec. IV-A),
+  3. correlation response, sub-cell peak, PSR (Eqs. 14-16),
+  4. depth translation over well-matched cells (Eq. 18) and the residual
+     rotation from the tilt of the depth differences; pose composition,
+  5. key refinement by a count-weighted moving average (Eq. 19),
+  6. a new key frame when PSR < T_r (Eq. 17).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from onboard.correlation import KernelCorrelationFilter, Peak, find_peak
+from onboard.frames import AttitudeSource, CameraIntrinsics, RgbdFrame
+from onboard.projection import AxonometricImage, Cloud, adaptive_resolution, make_cloud, project
+
+
+@dataclass(frozen=True)
+class NislamParams:
+    """Tracker parameters; defaults are the tuned values (see config/*.toml comments)."""
+
+    grid_width: int = 480
+    grid_height: int = 360
+    adaptive_mu: float = 0.8  # share of points the key grid must hold (ref. §3; all launches: 0.8)
+    max_distance_m: float = 4.0
+    len_hist: int = 50
+    hist_sample: int = 5
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    pixel_stride: int = 1
+    kernel_sigma: float = 0.2
+    lam: float = 0.1
+    label_sigma_cells: float = 1.0
+    psr_exclude_cells: int = 5  # sidelobe excludes an 11x11 window around the peak
+    psr_keyframe: float = 12.0  # T_r of Eq. 17
+    psr_refine: float = 25.0  # refine the key only on confident matches (ref. §8: 100)
+    psr_lost: float = 6.0  # below this the match is not trusted
+    min_valid_fraction: float = 0.05  # of grid cells covered by the current cloud
+    gate_gray: float = 0.1  # |C~ - C_key| for a well-matched cell (Eq. 18, T_c)
+    gate_depth_m: float = 0.1  # |Delta - median| for a well-matched cell
+    min_matched_cells: int = 200
+    search_radius_m: float = 0.1  # peak search window around the predicted shift
+    estimate_rotation_residual: bool = True
+    rotation_residual_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
+    rotation_residual_gain: float = 0.0  # share of the residual removed from the lateral translation
+    calibrate_time_offset: bool = True
+    time_offset_s: float = 0.0  # initial attitude time offset: attitude is queried at t + offset
+    time_offset_max_s: float = 0.1
+    time_offset_forget: float = 0.995  # per-frame forgetting of the offset regression
+    rate_half_window_s: float = 0.02  # angular rate from attitude at t +- this
+
+
+class TrackState(enum.Enum):
+    INITIALIZING = "initializing"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class KeyframeCloud:
+    """A finished (refined) key: its images and pose. `points()` turns it into
+    a coloured cloud in the world frame; it is lazy so the tracking loop only
+    hands over references and the map consumer pays for the conversion."""
+
+    keyframe_id: int
+    t_s: float
+    p_W_m: np.ndarray  # key camera position (3,)
+    R_W_C: np.ndarray  # key camera orientation (3, 3)
+    res_m: float
+    depth_m: np.ndarray  # refined axonometric depth (H, W), 0 = empty
+    gray: np.ndarray  # refined gray (H, W) in [0, 1]
+    bgr: np.ndarray  # the key's own colour (H, W, 3) uint8, 0 where it saw nothing
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz_W_m (N,3) float32, rgb (N,3) uint8) of the filled cells: cell
+        centre and refined depth in key axes, then the key pose (ref. §11).
+        Cells filled only by refinement take their refined gray as colour."""
+        h, w = self.depth_m.shape
+        vv, uu = np.nonzero(self.depth_m > 0)
+        s = self.res_m
+        pts = np.stack(
+            [(uu - w // 2 + 0.5) * s, (vv - h // 2 + 0.5) * s, self.depth_m[vv, uu]], axis=1
+        )
+        xyz = (pts @ self.R_W_C.T + self.p_W_m).astype(np.float32)
+        rgb = self.bgr[vv, uu, ::-1].copy()
+        no_colour = ~rgb.any(axis=1)
+        rgb[no_colour] = np.clip(self.gray[vv, uu][no_colour] * 255.0 + 0.5, 0, 255)[:, None]
+        return xyz, rgb.astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What `track()` tells about one frame.
+
+    `p_W_m` / `R_W_C` are None unless `trusted`: a frame the tracker could not
+    match carries no pose at all, so nothing downstream can send it.
+    """
+
+    t_s: float
+    state: TrackState
+    trusted: bool
+    p_W_m: np.ndarray | None
+    R_W_C: np.ndarray | None
+    pose_var: np.ndarray  # (6,) variances x, y, z [m^2], roll, pitch, yaw [rad^2]
+    quality: int  # 0 (none) .. 100
+    psr: float
+    keyframe_id: int
+    new_keyframe: bool
+    reset_counter: int
+    lost_reason: str | None
+    shift_cells: tuple[float, float]
+    tz_m: float
+    res_m: float
+    rotation_residual_rad: np.ndarray  # (3,) in key axes; z is not observed (0)
+    attitude_offset_s: float
+    matched_cells: int
+    finished_keyframes: tuple[KeyframeCloud, ...] = ()
+
+    @property
+    def q_W_C_xyzw(self) -> np.ndarray | None:
+        return None if self.R_W_C is None else Rotation.from_matrix(self.R_W_C).as_quat()
+
+
+@dataclass
+class _Key:
+    """Key frame state: the learned filter, the refined images and the pose."""
+
+    keyframe_id: int
+    t_s: float
+    p_W_m: np.ndarray
+    R_W_C: np.ndarray
+    img: AxonometricImage
+    gray_ref: np.ndarray  # refined gray (count-weighted mean, Eq. 19a)
+    depth_ref: np.ndarray  # refined depth
+    count: np.ndarray  # W_k of Eq. 19b
+    mask0: np.ndarray  # original key mask W_0
+    filt: KernelCorrelationFilter
+    shifts: list[tuple[float, float]] = field(default_factory=list)  # last two tracked (du, dv)
+
+    @property
+    def predicted_shift(self) -> tuple[float, float]:
+        """Constant-velocity prediction of the next shift against this key."""
+        if not self.shifts:
+            return (0.0, 0.0)
+        if len(self.shifts) == 1:
+            return self.shifts[-1]
+        (u0, v0), (u1, v1) = self.shifts[-2], self.shifts[-1]
+        return (2 * u1 - u0, 2 * v1 - v0)
+
+
+@dataclass
+class _Prev:
+    """The last trusted frame, kept to seed a new key when a match fails."""
+
+    t_s: float
+    cloud: Cloud
+    p_W_m: np.ndarray
+    R_W_C: np.ndarray
+
+
+@dataclass
+class _OffsetCalibration:
+    """Online least squares for the attitude time offset.
+
+    A time error eps makes the residual rotation theta ~ eps * g, with g the
+    difference of the key's and the current frame's angular rates in key axes.
+    Each frame implies offset_true ~ offset_used - (g . theta) / |g|^2; the
+    estimate is the |g|^2-weighted mean of those with exponential forgetting.
+    """
+
+    forget: float
+    max_s: float
+    offset_s: float
+    num: float = 0.0
+    den: float = 0.0
+    n: int = 0
+
+    def update(self, g_rad_s: np.ndarray, theta_rad: np.ndarray) -> None:
+        g2 = float(g_rad_s @ g_rad_s)
+        if g2 < 0.05:  # below ~13 deg/s the residual says nothing about time
+            return
+        self.num = self.forget * self.num + g2 * self.offset_s - float(g_rad_s @ theta_rad)
+        self.den = self.forget * self.den + g2
+        self.n += 1
+        if self.n >= 20:
+            self.offset_s = float(np.clip(self.num / self.den, -self.max_s, self.max_s))
+
+
+class NislamTracker:
+    """NI-SLAM tracking front end (one instance per camera)."""
+
+    name = "nislam"
+
+    def __init__(self, intrinsics: CameraIntrinsics, params: NislamParams = NislamParams()):
+        self.intr = intrinsics
+        self.p = params
+        self.shape = (params.grid_height, params.grid_width)
+        self._key: _Key | None = None
+        self._prev: _Prev | None = None
+        self._next_key_id = 0
+        self._reset_counter = 0
+        self._lost = False
+        self._last_trusted_p: np.ndarray | None = None
+        self._calib = _OffsetCalibration(
+            params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
+        )
+
+    # ------------------------------------------------------------------ API
+    @property
+    def attitude_offset_s(self) -> float:
+        return self._calib.offset_s
+
+    def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
+        """Track one frame; attitude is looked up at the capture time + offset."""
+        t_att = frame.t_s + self._calib.offset_s
+        r_cur = attitude.rotation_at(t_att)
+        if r_cur is None or not np.all(np.isfinite(r_cur)):
+            return self._lost_result(frame.t_s, "no attitude")
+        cloud = make_cloud(
+            frame.bgr, frame.depth_m, self.intr, self.p.min_depth_m, self.p.max_depth_m,
+            self.p.pixel_stride,
+        )
+        min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
+        if len(cloud) < min_points:
+            return self._lost_result(frame.t_s, "too few depth pixels")
+        if self._key is None or self._lost:
+            return self._restart(frame.t_s, cloud, r_cur)
+
+        key = self._key
+        finished: list[KeyframeCloud] = []
+        outcome = self._match(key, cloud, r_cur, attitude, t_att)
+        if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
+            # The current frame no longer matches the key: make the last trusted
+            # frame the key (it matched, so it overlaps both) and try again.
+            finished += self._new_key_from(self._prev)
+            key = self._key
+            outcome = self._match(key, cloud, r_cur, attitude, t_att)
+        if outcome is None:
+            self._lost = True
+            return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
+
+        p_W, peak, tz, theta, matched = outcome
+        self._prev = _Prev(frame.t_s, cloud, p_W, r_cur)
+        self._last_trusted_p = p_W
+        new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
+        if new_key:
+            # The switching frame is posed against the old key, then becomes the
+            # key with that pose (ref. "Per-frame order", step 6).
+            finished += self._new_key_from(self._prev)
+        return TrackResult(
+            t_s=frame.t_s,
+            state=TrackState.TRACKING,
+            trusted=True,
+            p_W_m=p_W,
+            R_W_C=r_cur,
+            pose_var=self._pose_variance(peak, key.img.res_m, matched),
+            quality=self._quality(peak.psr),
+            psr=peak.psr,
+            keyframe_id=self._key.keyframe_id,
+            new_keyframe=new_key,
+            reset_counter=self._reset_counter,
+            lost_reason=None,
+            shift_cells=(peak.du_cells, peak.dv_cells),
+            tz_m=tz,
+            res_m=key.img.res_m,
+            rotation_residual_rad=theta,
+            attitude_offset_s=self._calib.offset_s,
+            matched_cells=matched,
+            finished_keyframes=tuple(finished),
+        )
+
+    def finish(self) -> KeyframeCloud | None:
+        """Flush the current key's refined cloud (end of a run)."""
+        return None if self._key is None else self._key_cloud(self._key)
+
+    # ------------------------------------------------------------ matching
+    def _match(
+        self, key: _Key, cloud: Cloud, r_cur: np.ndarray, attitude: AttitudeSource, t_att: float
+    ) -> tuple[np.ndarray, Peak, float, np.ndarray, int] | None:
+        r_rel = key.R_W_C.T @ r_cur  # R_key^-1 R_cur (ref. §2)
+        img = project(cloud, r_rel, self.shape, key.img.res_m)
+        if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
+            return None
+        radius = max(3, int(self.p.search_radius_m / key.img.res_m))
+        peak = find_peak(
+            key.filt.response(_whiten(img)), self.p.psr_exclude_cells, key.predicted_shift, radius
+        )
+        if not peak.psr >= self.p.psr_lost:  # also catches NaN
+            return None
+        du, dv = int(round(peak.du_cells)), int(round(peak.dv_cells))
+        depth = self._depth_translation(key, img, du, dv)
+        if depth is None:
+            return None
+        tz, theta, z_mean_m, matched = depth
+        if self.p.calibrate_time_offset and self.p.estimate_rotation_residual:
+            g = self._rate_difference(key, r_rel, attitude, t_att)
+            if g is not None:
+                self._calib.update(g[:2], theta[:2])
+        if peak.psr > self.p.psr_refine:
+            self._refine(key, img, du, dv, tz)
+        key.shifts = [*key.shifts[-1:], (peak.du_cells, peak.dv_cells)]
+        s = key.img.res_m
+        # Content moves opposite to the camera (ref. §9): t = -d s; a residual
+        # rotation theta adds theta x p to every point, i.e. a lateral shift
+        # growing with depth, removed here at the matched cells' mean depth.
+        gain = self.p.rotation_residual_gain
+        t_x = -peak.du_cells * s - gain * theta[1] * z_mean_m
+        t_y = -peak.dv_cells * s + gain * theta[0] * z_mean_m
+        t_inc = np.array([t_x, t_y, tz])
+        p_W = key.p_W_m + key.R_W_C @ t_inc
+        return p_W, peak, tz, theta, matched
+
+    def _depth_translation(
+        self, key: _Key, img: AxonometricImage, du: int, dv: int
+    ) -> tuple[float, np.ndarray, float, int] | None:
+        """Eq. 18 with robust gating, plus the residual tilt.
+
+        Delta = D~ - D_key over cells seen in both whose gray agrees (T_c); the
+        depth gate is centred on the median rather than the previous t_z, which
+        lets fast z motion reject every cell (ref. pitfalls). Under a residual
+        rotation theta the differences form a plane,
+        Delta = -t_z - theta_x y + theta_y x, fitted in closed form.
+        Returns (t_z, theta, mean matched key depth, matched cells).
+        """
+        ks, cs = _overlap(self.shape, du, dv)
+        if ks is None:
+            return None
+        d_key = key.depth_ref[ks]
+        delta = img.depth_m[cs] - d_key
+        seen = (img.mask[cs] > 0) & (key.mask0[ks] > 0)
+        seen &= np.abs(img.gray[cs] - key.gray_ref[ks]) < self.p.gate_gray
+        sample = delta[::4, ::4][seen[::4, ::4]]
+        if len(sample) < self.p.min_matched_cells // 16:
+            return None
+        inl = seen & (np.abs(delta - np.median(sample)) < self.p.gate_depth_m)
+        wgt = inl.astype(np.float32)
+        n = float(wgt.sum())
+        if n < self.p.min_matched_cells:
+            return None
+        s = key.img.res_m
+        h, w = self.shape
+        xs = (np.arange(ks[1].start, ks[1].stop) - w // 2 + 0.5) * s
+        ys = (np.arange(ks[0].start, ks[0].stop) - h // 2 + 0.5) * s
+        wd = wgt * delta
+        col_w, row_w = wgt.sum(axis=0), wgt.sum(axis=1)
+        sum_d = float(wd.sum())
+        z_mean = float((wgt * d_key).sum()) / n
+        theta = np.zeros(3)
+        if not self.p.estimate_rotation_residual:
+            return -sum_d / n, theta, z_mean, int(n)
+        # Normal equations of Delta ~ a + b (x - mx) + c (y - my), centred on
+        # the matched cells so a (their mean) stays well determined even when
+        # the overlap is a thin strip far from the axis.
+        mx, my = float(col_w @ xs) / n, float(row_w @ ys) / n
+        xc, yc = xs - mx, ys - my
+        sxy = float(yc @ wgt @ xc)
+        ata = np.array([[col_w @ (xc * xc), sxy], [sxy, row_w @ (yc * yc)]])
+        atb = np.array([wd.sum(axis=0) @ xc, wd.sum(axis=1) @ yc])
+        try:
+            b, c = np.linalg.solve(ata, atb)
+        except np.linalg.LinAlgError:
+            return -sum_d / n, theta, z_mean, int(n)
+        lim = self.p.rotation_residual_max_rad
+        theta[0] = np.clip(-c, -lim, lim)
+        theta[1] = np.clip(b, -lim, lim)
+        # -t_z is the plane's value on the key's optical axis (x = y = 0); the
+        # clipped tilt bounds how far a poor fit can move it from the mean.
+        tz = -sum_d / n + theta[1] * mx - theta[0] * my
+        return float(tz), theta, z_mean, int(n)
+
+    def _rate_difference(
+        self, key: _Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
+    ) -> np.ndarray | None:
+        """g = omega_key - R_rel omega_cur in key axes (rad/s), see _OffsetCalibration."""
+        w_cur = _body_rate(attitude, t_att, self.p.rate_half_window_s)
+        w_key = _body_rate(attitude, key.t_s + self._calib.offset_s, self.p.rate_half_window_s)
+        if w_cur is None or w_key is None:
+            return None
+        return w_key - r_rel @ w_cur
+
+    def _refine(self, key: _Key, img: AxonometricImage, du: int, dv: int, tz: float) -> None:
+        """Count-weighted moving average of the key images (Eq. 19a/b), as an
+        incremental mean: ref += (new - ref) * w_new / (W_k + w_new)."""
+        ks, cs = _overlap(self.shape, du, dv)
+        w_new = img.mask[cs]
+        cnt = key.count[ks]
+        cnt += w_new
+        gain = w_new / np.maximum(cnt, 1.0)
+        key.gray_ref[ks] += (img.gray[cs] - key.gray_ref[ks]) * gain
+        # Eq. 19 with I_new - dz: depth moved into the key's axes first.
+        key.depth_ref[ks] += (img.depth_m[cs] + tz - key.depth_ref[ks]) * gain
+
+    # ----------------------------------------------------------- key frames
+    def _restart(self, t_s: float, cloud: Cloud, r_cur: np.ndarray) -> TrackResult:
+        """First key, or a new key after a lost spell placed at the last trusted
+        position in the same world frame (the reset counter marks the jump)."""
+        p_W = np.zeros(3) if self._last_trusted_p is None else self._last_trusted_p.copy()
+        if self._key is not None:
+            self._reset_counter += 1
+        self._lost = False
+        self._prev = _Prev(t_s, cloud, p_W, r_cur)
+        finished = self._new_key_from(self._prev)
+        self._last_trusted_p = p_W
+        return TrackResult(
+            t_s=t_s,
+            state=TrackState.TRACKING,
+            trusted=True,
+            p_W_m=p_W,
+            R_W_C=r_cur,
+            pose_var=np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4]),
+            quality=50,
+            psr=float("nan"),
+            keyframe_id=self._key.keyframe_id,
+            new_keyframe=True,
+            reset_counter=self._reset_counter,
+            lost_reason=None,
+            shift_cells=(0.0, 0.0),
+            tz_m=0.0,
+            res_m=self._key.img.res_m,
+            rotation_residual_rad=np.zeros(3),
+            attitude_offset_s=self._calib.offset_s,
+            matched_cells=0,
+            finished_keyframes=tuple(finished),
+        )
+
+    def _new_key_from(self, prev: _Prev) -> list[KeyframeCloud]:
+        """Project `prev` un-rotated at an adapted resolution and train on it;
+        returns the replaced key's cloud for the map."""
+        finished = [] if self._key is None else [self._key_cloud(self._key)]
+        p = self.p
+        res = adaptive_resolution(
+            prev.cloud, p.grid_width, p.adaptive_mu, p.max_distance_m, p.len_hist, p.hist_sample
+        )
+        img = project(prev.cloud, np.eye(3), self.shape, res, with_colour=True)
+        filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells)
+        filt.train(_whiten(img))
+        self._key = _Key(
+            keyframe_id=self._next_key_id,
+            t_s=prev.t_s,
+            p_W_m=prev.p_W_m.copy(),
+            R_W_C=prev.R_W_C.copy(),
+            img=img,
+            gray_ref=img.gray.copy(),
+            depth_ref=img.depth_m.copy(),
+            count=img.mask.copy(),
+            mask0=img.mask,
+            filt=filt,
+        )
+        self._next_key_id += 1
+        return finished
+
+    def _key_cloud(self, key: _Key) -> KeyframeCloud:
+        return KeyframeCloud(
+            key.keyframe_id, key.t_s, key.p_W_m, key.R_W_C, key.img.res_m,
+            np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref, key.img.bgr,
+        )
+
+    # -------------------------------------------------------------- results
+    def _lost_result(
+        self, t_s: float, reason: str, finished: tuple[KeyframeCloud, ...] = ()
+    ) -> TrackResult:
+        if self._key is not None:
+            self._lost = True
+        return TrackResult(
+            t_s=t_s,
+            state=TrackState.LOST if self._key is not None else TrackState.INITIALIZING,
+            trusted=False,
+            p_W_m=None,
+            R_W_C=None,
+            pose_var=np.full(6, np.nan),
+            quality=0,
+            psr=float("nan"),
+            keyframe_id=-1 if self._key is None else self._key.keyframe_id,
+            new_keyframe=False,
+            reset_counter=self._reset_counter,
+            lost_reason=reason,
+            shift_cells=(0.0, 0.0),
+            tz_m=0.0,
+            res_m=0.0 if self._key is None else self._key.img.res_m,
+            rotation_residual_rad=np.zeros(3),
+            attitude_offset_s=self._calib.offset_s,
+            matched_cells=0,
+            finished_keyframes=finished,
+        )
+
+    def _quality(self, psr: float) -> int:
+        span = max(self.p.psr_refine - self.p.psr_lost, 1e-6)
+        return int(np.clip(round(100.0 * (psr - self.p.psr_lost) / span), 1, 100))
+
+    def _pose_variance(self, peak: Peak, res_m: float, matched: int) -> np.ndarray:
+        """Lateral variance from the response treated as an isotropic 2-D
+        Gaussian (ref. §10: s^2 * volume / (2 pi peak)), floored at a tenth of
+        a cell; depth variance shrinks with the matched cells."""
+        vol = max(peak.response_sum, 0.0)
+        var_xy = res_m**2 * max(vol / (2.0 * math.pi * max(peak.value, 1e-9)), 0.01)
+        var_z = 0.01**2 + 1.0 / max(matched, 1)
+        rot = 2.0 * 4.592449e-6  # authors' fixed attitude variance (rad^2)
+        return np.array([var_xy, var_xy, var_z, rot, rot, rot])
+
+
+def _whiten(img: AxonometricImage) -> np.ndarray:
+    """Zero-mean gray over filled cells, holes at 0: holes then carry no
+    pattern of their own (the authors fill them with 0.5, which correlates the
+    hole layout of the two images)."""
+    n = float(img.mask.sum())
+    mean = float(img.gray.sum()) / n if n > 0 else 0.0
+    return (img.gray - mean) * img.mask
+
+
+def _overlap(shape: tuple[int, int], du: int, dv: int):
+    """Slices (key, current) with current[p + d] aligned to key[p]: a zero-filled,
+    non-circular shift (ref. pitfalls: np.roll is wrong here)."""
+    h, w = shape
+    if abs(du) >= w or abs(dv) >= h:
+        return None, None
+    ky = slice(max(0, -dv), min(h, h - dv))
+    kx = slice(max(0, -du), min(w, w - du))
+    cy = slice(ky.start + dv, ky.stop + dv)
+    cx = slice(kx.start + du, kx.stop + du)
+    return (ky, kx), (cy, cx)
+
+
+def _body_rate(attitude: AttitudeSource, t_s: float, half_s: float) -> np.ndarray | None:
+    """Angular rate in the camera frame from two attitude look-ups (rad/s)."""
+    r0 = attitude.rotation_at(t_s - half_s)
+    r1 = attitude.rotation_at(t_s + half_s)
+    if r0 is None or r1 is None:
+        return None
+    return Rotation.from_matrix(r0.T @ r1).as_rotvec() / (2.0 * half_s)
+
+

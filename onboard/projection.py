@@ -1,0 +1,167 @@
+"""Axonometric (orthographic) projection of an RGB-D cloud (NI-SLAM Sec. IV-A).
+
+The cloud is rotated into the key camera's axes and projected along the key's
+optical axis onto a W x H grid of `res_m` metres per cell, centred on that
+axis. Nearest point wins (z-buffer): near surfaces cover far ones as the
+camera would see them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from onboard.frames import CameraIntrinsics
+
+@dataclass(frozen=True)
+class Cloud:
+    """One frame's organised cloud: depth with invalid pixels zeroed, colour,
+    8-bit gray, and the unit-depth rays (x/z, y/z, 1) of its pixels."""
+
+    depth_m: np.ndarray  # (H', W') float32, 0 = invalid
+    bgr: np.ndarray  # (H', W', 3) uint8
+    gray8: np.ndarray  # (H', W') uint8
+    rays: np.ndarray  # (H', W', 3) float32
+
+    def __len__(self) -> int:
+        return int(np.count_nonzero(self.depth_m))
+
+    def xy_m(self, sample: int) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame X, Y of the valid points on every `sample`-th row/column."""
+        z = self.depth_m[::sample, ::sample]
+        r = self.rays[::sample, ::sample]
+        ok = z > 0
+        return r[..., 0][ok] * z[ok], r[..., 1][ok] * z[ok]
+
+
+@dataclass(frozen=True)
+class AxonometricImage:
+    """Gray `gray` in [0, 1] (holes = 0), depth `depth_m` (holes = 0) and 0/1
+    `mask`, all (H, W) float32, at `res_m` metres per cell; `bgr` (H, W, 3)
+    uint8 colour of the winning points when asked for (key frames, for the map)."""
+
+    gray: np.ndarray
+    depth_m: np.ndarray
+    mask: np.ndarray
+    res_m: float
+    bgr: np.ndarray | None = None
+
+
+@lru_cache(maxsize=4)
+def _rays(intr: CameraIntrinsics, stride: int) -> np.ndarray:
+    """Unit-depth rays (x/z, y/z, 1) of every `stride`-th pixel, (H', W', 3)."""
+    u = (np.arange(0, intr.width, stride, dtype=np.float32) - intr.cx) / intr.fx
+    v = (np.arange(0, intr.height, stride, dtype=np.float32) - intr.cy) / intr.fy
+    rays = np.ones((len(v), len(u), 3), np.float32)
+    rays[..., 0] = u[None, :]
+    rays[..., 1] = v[:, None]
+    rays.setflags(write=False)
+    return rays
+
+
+def make_cloud(
+    bgr: np.ndarray,
+    depth_m: np.ndarray,
+    intr: CameraIntrinsics,
+    min_depth_m: float,
+    max_depth_m: float,
+    stride: int = 1,
+) -> Cloud:
+    """Organised cloud of an undistorted pinhole frame; depth outside
+    (min, max) is invalid. Gray is OpenCV's BGR2GRAY: the authors'
+    0.114 B + 0.587 G + 0.299 R, rounded to 8 bits."""
+    if stride > 1:
+        bgr = bgr[::stride, ::stride]
+        depth_m = depth_m[::stride, ::stride]
+    bgr = np.ascontiguousarray(bgr)
+    depth = np.where((depth_m > min_depth_m) & (depth_m < max_depth_m), depth_m, 0.0)
+    gray8 = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    return Cloud(depth.astype(np.float32, copy=False), bgr, gray8, _rays(intr, stride))
+
+
+# Depth is packed with the gray level into one integer per point so that a
+# single unbuffered minimum (np.minimum.at) is the z-buffer: the nearest point
+# wins and carries its own gray. 24 bits of 0.1 mm depth, 8 bits of gray.
+_DEPTH_UNITS_PER_M = 1.0e4
+_DEPTH_CODE_MAX = 0xFFFFFF
+_EMPTY = np.uint32(0xFFFFFFFF)
+
+
+def project(
+    cloud: Cloud,
+    r_key_cur: np.ndarray,
+    shape: tuple[int, int],
+    res_m: float,
+    with_colour: bool = False,
+) -> AxonometricImage:
+    """Rotate the cloud into the key's axes (p' = R_rel p, Sec. IV-A1) and
+    project it orthographically onto the grid with a z-buffer.
+
+    Cell u covers x' in [(u - W/2) res, (u + 1 - W/2) res): a floor, not C++'s
+    truncation toward zero, so the cells either side of the axis are the same
+    size and shifts stay unbiased.
+    """
+    h, w = shape
+    # One affine pass maps rays*z to (u + w, v + h, z'): the +w/+h offsets keep
+    # in-range values positive so float->int truncation is a floor there.
+    m = np.empty((3, 4), np.float32)
+    m[:2, :3] = r_key_cur[:2] / res_m
+    m[2, :3] = r_key_cur[2]
+    m[:, 3] = (w // 2 + w, h // 2 + h, 0.0)
+    z = cloud.depth_m
+    pts = cv2.transform(cv2.multiply(cloud.rays, cv2.merge([z, z, z])), m)
+    u = pts[..., 0].astype(np.int32) - w
+    v = pts[..., 1].astype(np.int32) - h
+    zr = pts[..., 2]
+    ok = (u.view(np.uint32) < w) & (v.view(np.uint32) < h) & (zr > 0)
+    idx = np.where(ok, v * w + u, h * w).ravel()  # out-of-grid points go to a spare cell
+    code = np.minimum(zr * np.float32(_DEPTH_UNITS_PER_M), np.float32(_DEPTH_CODE_MAX)).astype(np.uint32)
+    key = ((code << 8) | cloud.gray8).ravel()
+    zbuf = np.full(h * w + 1, _EMPTY, np.uint32)
+    np.minimum.at(zbuf, idx, key)
+    cells = zbuf[:-1].reshape(shape)
+    filled = cells != _EMPTY
+    mask = filled.astype(np.float32)
+    depth = (cells >> 8).astype(np.float32) * (np.float32(1.0 / _DEPTH_UNITS_PER_M) * mask)
+    gray = (cells & 0xFF).astype(np.float32) * (np.float32(1.0 / 255.0) * mask)
+    bgr = None
+    if with_colour:
+        win = ok.ravel() & (key == zbuf[idx])
+        bgr_flat = np.zeros((h * w, 3), np.uint8)
+        bgr_flat[idx[win]] = cloud.bgr.reshape(-1, 3)[win]
+        bgr = bgr_flat.reshape(h, w, 3)
+    return AxonometricImage(gray, depth, mask, res_m, bgr)
+
+
+def adaptive_resolution(
+    cloud: Cloud, grid_width: int, mu: float, max_distance_m: float, len_hist: int, sample: int
+) -> float:
+    """Key-frame cell size from the lateral spread of the cloud (authors'
+    `adapt_field_of_view`): the smallest square-ish window holding a share mu
+    of the sampled points sets s = 2 (k + 1) r_h / W."""
+    x, y = cloud.xy_m(sample)
+    if len(x) == 0:
+        return 2.0 * len_hist * (max_distance_m / len_hist / 2.0) / grid_width
+    # Window aspect tau = H/W of the camera image: bins along its diagonal.
+    tau = cloud.depth_m.shape[0] / cloud.depth_m.shape[1]
+    cos_t = 1.0 / np.sqrt(1.0 + tau * tau)
+    sin_t = tau * cos_t
+    a_w = int(round(len_hist * cos_t))
+    a_h = int(round(a_w * tau))
+    r_h = max_distance_m / a_w / 2.0
+    a = np.abs((x / r_h).astype(np.int32))
+    b = np.abs((y / r_h).astype(np.int32))
+    keep = (a < a_w) & (b < a_h)
+    a, b = a[keep], b[keep]
+    # Round half away from zero like the C++ (np.round rounds half to even).
+    bins = np.floor(np.where(b > a * tau, b / sin_t, a / cos_t) + 0.5).astype(np.int64)
+    if mu >= 1.0 or len(bins) == 0:
+        k = len_hist
+    else:
+        # The share is of the points inside the window (the C++ histogram sum).
+        cum = np.cumsum(np.bincount(bins, minlength=len_hist + 1))
+        k = int(np.argmax(cum > mu * len(bins)))
+    return 2.0 * (k + 1) * r_h / grid_width

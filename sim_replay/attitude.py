@@ -1,0 +1,230 @@
+"""Attitude for replay: a recorded or ground-truth orientation series, with a
+realistic AHRS error model (white noise, bias random walk, time offset).
+
+NI-SLAM was evaluated on TUM with the motion-capture orientation standing in
+for the attitude sensor; `attitude_for_replay` does the same when a sequence
+has no `attitude.txt`, and the error model makes it look like a real AHRS.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from onboard import NislamError
+from onboard.trajectory import Trajectory
+
+from .tum import Sequence
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_GAP_S = 0.2  # same rule as ground truth: bridge gaps up to 200 ms, never extrapolate
+_GAP_EPS_S = 1e-9  # the tolerance Trajectory.interpolate uses, so both paths agree
+
+
+class AttitudeSeries:
+    """`AttitudeSource` over timestamped orientations R_W_C (positions ignored).
+
+    `rotation_at` is called once per frame in the loop, so it works on plain
+    Python floats (bisect + one slerp, a few microseconds) instead of building
+    scipy Rotation objects per call.
+    """
+
+    def __init__(self, trajectory: Trajectory, max_gap_s: float = DEFAULT_MAX_GAP_S) -> None:
+        self.trajectory = trajectory
+        self.max_gap_s = float(max_gap_s)
+        self._t_s: list[float] = [float(t) for t in trajectory.t_s]
+        self._q_xyzw: list[tuple[float, float, float, float]] = [
+            (float(q[0]), float(q[1]), float(q[2]), float(q[3])) for q in trajectory.q_xyzw
+        ]
+
+    def __len__(self) -> int:
+        return len(self._t_s)
+
+    @property
+    def span_s(self) -> tuple[float, float] | None:
+        return (self._t_s[0], self._t_s[-1]) if self._t_s else None
+
+    def rotation_at(self, t_s: float) -> np.ndarray | None:
+        """R_W_C (3x3) at `t_s`, slerped between the two neighbouring samples;
+        None outside the covered span or inside a gap longer than `max_gap_s`."""
+        ts = self._t_s
+        n = len(ts)
+        if n == 0:
+            return None
+        if not (ts[0] <= t_s <= ts[-1]):  # also rejects NaN
+            return None
+        i = bisect.bisect_right(ts, t_s)  # 1 <= i <= n here
+        if ts[i - 1] == t_s:
+            # A sample is valid at its own stamp even when a long gap follows it.
+            return _quat_to_matrix(self._q_xyzw[i - 1])
+        t0, t1 = ts[i - 1], ts[i]
+        if t1 - t0 > self.max_gap_s + _GAP_EPS_S:
+            return None
+        return _quat_to_matrix(_slerp(self._q_xyzw[i - 1], self._q_xyzw[i], (t_s - t0) / (t1 - t0)))
+
+    def rotations_at(self, t_s) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised `rotation_at`: (R_W_C (M,3,3), valid (M,) bool); invalid rows are NaN."""
+        q, valid = _interpolate_q(self.trajectory, t_s, self.max_gap_s)
+        r = np.full((len(valid), 3, 3), np.nan)
+        if valid.any():
+            r[valid] = Rotation.from_quat(q[valid]).as_matrix()
+        return r, valid
+
+
+def _interpolate_q(traj: Trajectory, t_s, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Trajectory.interpolate's orientation, plus exact hits on a sample stamp.
+
+    Trajectory.interpolate judges a query by the gap to the NEXT sample, so a
+    sample bordering a gap longer than max_gap_s is rejected even at its own
+    stamp; here a sample always stands for itself.
+    """
+    t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+    _p, q, valid = traj.interpolate(t, max_gap_s)
+    if len(traj) and not valid.all():
+        k = np.clip(np.searchsorted(traj.t_s, t), 0, len(traj) - 1)
+        exact = ~valid & (traj.t_s[k] == t)
+        q[exact] = traj.q_xyzw[k[exact]]
+        valid = valid | exact
+    return q, valid
+
+
+def _slerp(
+    q0: tuple[float, float, float, float], q1: tuple[float, float, float, float], w: float
+) -> tuple[float, float, float, float]:
+    x0, y0, z0, w0 = q0
+    x1, y1, z1, w1 = q1
+    dot = x0 * x1 + y0 * y1 + z0 * z1 + w0 * w1
+    if dot < 0.0:  # q and -q are the same rotation; take the short way round
+        x1, y1, z1, w1, dot = -x1, -y1, -z1, -w1, -dot
+    if dot > 0.9999995:
+        # Under ~0.1 deg apart sin(theta) loses precision; normalised lerp is exact enough.
+        a, b = 1.0 - w, w
+    else:
+        theta = math.acos(dot)
+        s = math.sin(theta)
+        a, b = math.sin((1.0 - w) * theta) / s, math.sin(w * theta) / s
+    x, y, z, ww = a * x0 + b * x1, a * y0 + b * y1, a * z0 + b * z1, a * w0 + b * w1
+    norm = math.sqrt(x * x + y * y + z * z + ww * ww)
+    return x / norm, y / norm, z / norm, ww / norm
+
+
+def _quat_to_matrix(q_xyzw: tuple[float, float, float, float]) -> np.ndarray:
+    x, y, z, w = q_xyzw
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return np.array(
+        [
+            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+        ]
+    )
+
+
+@dataclass(frozen=True)
+class AttitudeErrorModel:
+    """How a simulated AHRS deviates from the truth.
+
+    noise_deg: per-axis std of a white rotation-vector error drawn per sample.
+    bias_deg_per_sqrt_s: random-walk intensity of a rotation-vector bias (per
+        axis, starting at zero at the first sample; its variance grows as
+        bias^2 * elapsed time).
+    offset_ms: the sample stamped t holds the true attitude at t - offset (the
+        sensor's stamps are late by offset; negative = early).
+    seed: numpy Generator seed; the same seed gives the same errors.
+    Errors act in the body frame: R_meas = R_true * Exp(bias) * Exp(noise).
+    """
+
+    noise_deg: float = 0.0
+    bias_deg_per_sqrt_s: float = 0.0
+    offset_ms: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("noise_deg", "bias_deg_per_sqrt_s", "offset_ms"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise NislamError(
+                    f"attitude error model: {name} must be a finite number, got {v!r}"
+                )
+        if self.noise_deg < 0 or self.bias_deg_per_sqrt_s < 0:
+            raise NislamError(
+                "attitude error model: noise_deg and bias_deg_per_sqrt_s must be >= 0"
+            )
+
+    @property
+    def is_zero(self) -> bool:
+        return self.noise_deg == 0 and self.bias_deg_per_sqrt_s == 0 and self.offset_ms == 0
+
+    def describe(self) -> str:
+        if self.is_zero:
+            return "exact"
+        return (f"noise {self.noise_deg:g} deg, bias {self.bias_deg_per_sqrt_s:g} deg/sqrt(s), "
+                f"offset {self.offset_ms:g} ms, seed {self.seed}")
+
+
+def apply_error_model(
+    truth: Trajectory,
+    t_s,
+    model: AttitudeErrorModel,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+) -> Trajectory:
+    """Measured orientation samples stamped `t_s` (sorted): the truth
+    interpolated at t - offset (stamps without truth there are dropped), then
+    bias random walk and white noise applied in the body frame."""
+    t = np.asarray(t_s, dtype=np.float64).ravel()
+    q_true, valid = _interpolate_q(truth, t - model.offset_ms * 1e-3, max_gap_s)
+    t, q_true = t[valid], q_true[valid]
+    n = len(t)
+    if n == 0 or (model.noise_deg == 0 and model.bias_deg_per_sqrt_s == 0):
+        return Trajectory.from_samples(t, np.zeros((n, 3)), q_true)
+    rng = np.random.default_rng(model.seed)
+    # Draw both streams always, so switching one term on or off does not change
+    # the realisation of the other for the same seed.
+    noise_rad = rng.standard_normal((n, 3)) * math.radians(model.noise_deg)
+    steps = rng.standard_normal((n, 3))
+    dt_s = np.diff(t, prepend=t[0])
+    bias_rad = np.cumsum(steps * (math.radians(model.bias_deg_per_sqrt_s) * np.sqrt(dt_s))[:, None],
+                         axis=0)
+    r_true = Rotation.from_quat(q_true)
+    r_meas = r_true * Rotation.from_rotvec(bias_rad) * Rotation.from_rotvec(noise_rad)
+    return Trajectory.from_samples(t, np.zeros((n, 3)), r_meas.as_quat())
+
+
+def attitude_for_replay(
+    seq: Sequence, model: AttitudeErrorModel, max_gap_s: float = DEFAULT_MAX_GAP_S
+) -> tuple[AttitudeSeries, str]:
+    """The attitude a replay feeds the tracker, and a label saying where it came from.
+
+    From `attitude.txt` (R_W_B at the AHRS's own stamps, turned into R_W_C with
+    the camera mount) when present; else from ground truth sampled once per
+    frame time (the camera's own orientation, mount = identity, as the NI-SLAM
+    authors did on TUM). The error model is applied in the body frame.
+    """
+    if seq.attitude is not None:
+        measured = apply_error_model(seq.attitude, seq.attitude.t_s, model, max_gap_s)
+        q_b_c = np.asarray(seq.camera.q_B_C_xyzw, dtype=np.float64)
+        if not np.allclose(q_b_c, [0.0, 0.0, 0.0, 1.0]):
+            q_w_c = (Rotation.from_quat(measured.q_xyzw) * Rotation.from_quat(q_b_c)).as_quat()
+            measured = Trajectory(measured.t_s, measured.p_xyz_m, q_w_c)
+        source = "attitude.txt"
+    elif seq.groundtruth is not None:
+        measured = apply_error_model(seq.groundtruth, seq.frame_times_s, model, max_gap_s)
+        dropped = len(seq.frame_times_s) - len(measured)
+        if dropped:
+            log.info("%s: %d of %d frames have no ground-truth attitude", seq.path, dropped,
+                     len(seq.frame_times_s))
+        source = "groundtruth.txt at frame times (camera orientation, mount identity)"
+    else:
+        raise NislamError(
+            f"{seq.path} has neither attitude.txt nor groundtruth.txt: no attitude to replay"
+        )
+    if len(measured) == 0:
+        raise NislamError(f"{seq.path}: {source} gives no attitude sample at any frame time")
+    return AttitudeSeries(measured, max_gap_s), f"{source}; {model.describe()}"
