@@ -443,7 +443,8 @@ class NislamTracker:
         finished = [] if self._key is None else [self._key_cloud(self._key)]
         p = self.p
         res = adaptive_resolution(
-            prev.cloud, p.grid_width, p.adaptive_mu, p.max_distance_m, p.len_hist, p.hist_sample
+            prev.cloud, p.grid_width, p.adaptive_mu, p.max_distance_m, p.len_hist, p.hist_sample,
+            self.intr.height / self.intr.width,
         )
         img = project(prev.cloud, np.eye(3), self.shape, res, with_colour=True)
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells)

@@ -137,7 +137,13 @@ def project(
 
 
 def adaptive_resolution(
-    cloud: Cloud, grid_width: int, mu: float, max_distance_m: float, len_hist: int, sample: int
+    cloud: Cloud,
+    grid_width: int,
+    mu: float,
+    max_distance_m: float,
+    len_hist: int,
+    sample: int,
+    aspect: float = 0.75,
 ) -> float:
     """Key-frame cell size from the lateral spread of the cloud (authors'
     `adapt_field_of_view`): the smallest square-ish window holding a share mu
@@ -146,7 +152,7 @@ def adaptive_resolution(
     if len(x) == 0:
         return 2.0 * len_hist * (max_distance_m / len_hist / 2.0) / grid_width
     # Window aspect tau = H/W of the camera image: bins along its diagonal.
-    tau = cloud.depth_m.shape[0] / cloud.depth_m.shape[1]
+    tau = aspect
     cos_t = 1.0 / np.sqrt(1.0 + tau * tau)
     sin_t = tau * cos_t
     a_w = int(round(len_hist * cos_t))

@@ -202,11 +202,12 @@ def test_parabolic_refinement_on_sampled_gaussian(u0, v0, want_du, want_dv):
     assert abs(peak.dv_cells - want_dv) < 0.05
 
 
-def test_parabolic_refinement_exact_on_a_paraboloid():
-    """Along each axis through the peak cell a paraboloid is an exact parabola."""
+def test_parabolic_refinement_exact_on_a_gaussian():
+    """A positive peak is fitted on its logarithm, where a sampled Gaussian is
+    an exact parabola along each axis."""
     u0, v0 = 30.27, 12.61
     vv, uu = np.mgrid[0:H, 0:W]
-    r = 100.0 - (uu - u0) ** 2 - 2.0 * (vv - v0) ** 2
+    r = 100.0 * np.exp(-((uu - u0) ** 2) / 8.0 - (vv - v0) ** 2 / 4.0)
     peak = find_peak(r, 3)
     assert peak.du_cells == pytest.approx(u0, abs=1e-9)
     assert peak.dv_cells == pytest.approx(v0, abs=1e-9)
