@@ -124,9 +124,12 @@ def project(
     np.minimum.at(zbuf, idx, key)
     cells = zbuf[:-1].reshape(shape)
     filled = cells != _EMPTY
+    cells = np.where(filled, cells, np.uint32(0))  # empty cells decode to depth 0, gray 0
+    depth = (cells >> 8).astype(np.float32)
+    depth *= np.float32(1.0 / _DEPTH_UNITS_PER_M)
+    gray = (cells & 0xFF).astype(np.float32)
+    gray *= np.float32(1.0 / 255.0)
     mask = filled.astype(np.float32)
-    depth = (cells >> 8).astype(np.float32) * (np.float32(1.0 / _DEPTH_UNITS_PER_M) * mask)
-    gray = (cells & 0xFF).astype(np.float32) * (np.float32(1.0 / 255.0) * mask)
     bgr = None
     if with_colour:
         win = ok.ravel() & (key == zbuf[idx])
