@@ -61,6 +61,7 @@ class NislamParams:
     rotation_residual_gain: float = 0.0  # share of the residual removed from the lateral translation
     calibrate_time_offset: bool = True
     calibrate_every_n_frames: int = 4  # layer correlation for the calibration on every n-th frame
+    calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
     layer_min_gap_m: float = 0.2  # near/far layers must differ this much in mean depth
     time_offset_s: float = 0.0  # initial attitude time offset: attitude is queried at t + offset
     time_offset_max_s: float = 0.1
@@ -373,16 +374,27 @@ class NislamTracker:
             return None
         tz, theta, z_mean_m, matched = depth
         self._frame_count += 1
-        if key.layers is not None and self._frame_count % self.p.calibrate_every_n_frames == 0:
-            self._calibrate(key, img, peak, r_rel, attitude, t_att)
+        gain = self.p.rotation_residual_gain
+        # Calibrate on every frame until the offset has settled, then sparsely.
+        settling = self.p.calibrate_time_offset and self._calib.n < self.p.calibrate_settle_updates
+        every = 1 if gain > 0.0 or settling else self.p.calibrate_every_n_frames
+        theta_img = None
+        if key.layers is not None and self._frame_count % every == 0:
+            theta_img = key.layers.residual(img, (peak.du_cells, peak.dv_cells), self.p)
+            if theta_img is not None and self.p.calibrate_time_offset:
+                self._calibrate(key, r_rel, attitude, t_att, theta_img)
         if peak.psr > self.p.psr_refine:
             self._refine(key, img, du, dv, tz)
         key.shifts = [*key.shifts[-1:], (peak.du_cells, peak.dv_cells)]
         s = key.img.res_m
-        # Content moves opposite to the camera (ref. §9): t = -d s; a residual
-        # rotation theta adds theta x p to every point, i.e. a lateral shift
-        # growing with depth, removed here at the matched cells' mean depth.
-        gain = self.p.rotation_residual_gain
+        # Content moves opposite to the camera (ref. §9): t = -d s. A residual
+        # rotation theta adds theta x p to every point, a lateral shift growing
+        # with depth; with a gain, the layers' theta is removed at the matched
+        # cells' mean depth.
+        if theta_img is not None:
+            theta = theta_img
+        else:
+            gain = 0.0
         t_x = -peak.du_cells * s - gain * theta[1] * z_mean_m
         t_y = -peak.dv_cells * s + gain * theta[0] * z_mean_m
         t_inc = np.array([t_x, t_y, tz])
@@ -454,18 +466,14 @@ class NislamTracker:
     def _calibrate(
         self,
         key: _Key,
-        img: AxonometricImage,
-        peak: Peak,
         r_rel: np.ndarray,
         attitude: AttitudeSource,
         t_att: float,
+        theta_rad: np.ndarray,
     ) -> None:
-        theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), self.p)
-        if theta is None:
-            return
         g = self._rate_difference(key, r_rel, attitude, t_att)
         if g is not None:
-            self._calib.update(g[:2], theta[:2])
+            self._calib.update(g[:2], theta_rad[:2])
 
     def _rate_difference(
         self, key: _Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
@@ -534,7 +542,8 @@ class NislamTracker:
         img = project(prev.cloud, np.eye(3), self.shape, res, with_colour=True)
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells)
         filt.train(_whiten(img))
-        layers = _DepthLayers.train(img, p) if p.calibrate_time_offset else None
+        needs_layers = p.calibrate_time_offset or p.rotation_residual_gain > 0.0
+        layers = _DepthLayers.train(img, p) if needs_layers else None
         self._key = _Key(
             keyframe_id=self._next_key_id,
             t_s=prev.t_s,

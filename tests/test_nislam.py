@@ -19,9 +19,10 @@ from scipy.spatial.transform import Rotation
 from onboard.frames import CameraIntrinsics, RgbdFrame
 from onboard.nislam import NislamParams, NislamTracker, TrackState
 
-# A 320 x 240 camera with the field of view of a 640 x 480 one at fx = 500.
+# A 320 x 240 camera with the field of view of a 640 x 480 one at fx = 500;
+# every pixel is used (pixel_stride 1), as every 2nd of a VGA image would be.
 INTR = CameraIntrinsics(fx=250.0, fy=250.0, cx=159.5, cy=119.5, width=320, height=240)
-GRID = dict(grid_width=240, grid_height=180)
+GRID = dict(grid_width=240, grid_height=180, pixel_stride=1)
 DT = 1.0 / 30.0
 POS_TOL_M = 0.002
 
