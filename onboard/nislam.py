@@ -63,6 +63,7 @@ class NislamParams:
     calibrate_every_n_frames: int = 4  # layer correlation for the calibration on every n-th frame
     calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
     layer_min_gap_m: float = 0.2  # near/far layers must differ this much in mean depth
+    layer_downsample: int = 4  # layer images are correlated at 1/n of the grid resolution
     time_offset_s: float = 0.0  # initial attitude time offset: attitude is queried at t + offset
     time_offset_max_s: float = 0.1
     time_offset_forget: float = 0.995  # per-frame forgetting of the offset regression
@@ -171,7 +172,7 @@ class _Key:
 @dataclass
 class _DepthLayers:
     """Near and far halves of a key image, each with its own correlation
-    filter at half resolution.
+    filter at reduced resolution.
 
     A residual rotation theta shifts content by theta x p, i.e. in proportion
     to depth, while a translation shifts every depth alike: the difference of
@@ -196,11 +197,12 @@ class _DepthLayers:
         z_near, z_far = float(depths[depths < split].mean()), float(depths[depths >= split].mean())
         if z_far - z_near < p.layer_min_gap_m:
             return None
-        shape = (img.gray.shape[0] // 2, img.gray.shape[1] // 2)
+        n = p.layer_downsample
+        shape = (img.gray.shape[0] // n, img.gray.shape[1] // n)
         filters = []
         for near in (True, False):
             f = KernelCorrelationFilter(shape, p.kernel_sigma, p.lam, p.label_sigma_cells)
-            f.train(_layer_image(img, split, near))
+            f.train(_layer_image(img, split, near, n))
             filters.append(f)
         return cls(split, z_near, z_far, filters[0], filters[1])
 
@@ -208,24 +210,27 @@ class _DepthLayers:
         self, img: AxonometricImage, shift_cells: tuple[float, float], p: "NislamParams"
     ) -> np.ndarray | None:
         """theta (x, y, 0) in key axes [rad], or None when a layer does not match."""
-        centre = (shift_cells[0] / 2.0, shift_cells[1] / 2.0)
+        n = p.layer_downsample
+        centre = (shift_cells[0] / n, shift_cells[1] / n)
         shifts = []
         for near, filt in ((True, self.near), (False, self.far)):
-            pk = find_peak(filt.response(_layer_image(img, self.split_m, near)), 2, centre, 3)
+            layer = _layer_image(img, self.split_m, near, n)
+            pk = find_peak(filt.response(layer), 2, centre, max(2, 6 // n))
             if not pk.psr >= p.psr_lost:
                 return None
-            shifts.append((2.0 * pk.du_cells, 2.0 * pk.dv_cells))
+            shifts.append((n * pk.du_cells, n * pk.dv_cells))
         (un, vn), (uf, vf) = shifts
         k = img.res_m / (self.z_far_m - self.z_near_m)
         # d s = -(t + theta x p): du grows by -theta_y z, dv by +theta_x z.
         return np.array([(vf - vn) * k, -(uf - un) * k, 0.0])
 
 
-def _layer_image(img: AxonometricImage, split_m: float, near: bool) -> np.ndarray:
+def _layer_image(img: AxonometricImage, split_m: float, near: bool, down: int) -> np.ndarray:
+    """Whitened gray of one depth layer, area-averaged down by `down`."""
     sel = img.depth_m < split_m if near else img.depth_m >= split_m
     mask = img.mask * sel
     h, w = img.gray.shape
-    return cv2.resize(_whiten_masked(img.gray, mask), (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    return cv2.resize(_whiten_masked(img.gray, mask), (w // down, h // down), interpolation=cv2.INTER_AREA)
 
 
 @dataclass

@@ -73,13 +73,14 @@ def make_cloud(
     """Organised cloud of an undistorted pinhole frame; depth outside
     (min, max) is invalid. Gray is OpenCV's BGR2GRAY: the authors'
     0.114 B + 0.587 G + 0.299 R, rounded to 8 bits."""
-    if stride > 1:
-        bgr = bgr[::stride, ::stride]
-        depth_m = depth_m[::stride, ::stride]
-    bgr = np.ascontiguousarray(bgr)
+    # Gray of the whole image, then every stride-th pixel: cheaper than copying
+    # a strided colour image first. Colour stays a view (only key frames use it).
+    gray8 = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2GRAY)[::stride, ::stride]
+    depth_m = depth_m[::stride, ::stride]
     depth = np.where((depth_m > min_depth_m) & (depth_m < max_depth_m), depth_m, 0.0)
-    gray8 = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
-    return Cloud(depth.astype(np.float32, copy=False), bgr, gray8, _rays(intr, stride))
+    return Cloud(
+        depth.astype(np.float32, copy=False), bgr[::stride, ::stride], gray8, _rays(intr, stride)
+    )
 
 
 # Depth is packed with the gray level into one integer per point so that a
