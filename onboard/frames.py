@@ -7,10 +7,12 @@ the name (`q_xyzw` as TUM/scipy, `q_wxyz` as MAVLink).
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
@@ -45,3 +47,74 @@ class AttitudeSource(Protocol):
         """R_W_C (3x3, camera optical to attitude world) at `t_s`, or None when
         no trustworthy attitude covers that time."""
         ...
+
+
+class TrackState(enum.Enum):
+    INITIALIZING = "initializing"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class KeyframeCloud:
+    """A finished (refined) key: its images and pose. `points()` turns it into
+    a coloured cloud in the world frame; it is lazy so the tracking loop only
+    hands over references and the map consumer pays for the conversion."""
+
+    keyframe_id: int
+    t_s: float
+    p_W_m: np.ndarray  # key camera position (3,)
+    R_W_C: np.ndarray  # key camera orientation (3, 3)
+    res_m: float
+    depth_m: np.ndarray  # refined axonometric depth (H, W), 0 = empty
+    gray: np.ndarray  # refined gray (H, W) in [0, 1]
+    bgr: np.ndarray  # the key's own colour (H, W, 3) uint8, 0 where it saw nothing
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz_W_m (N,3) float32, rgb (N,3) uint8) of the filled cells: cell
+        centre and refined depth in key axes, then the key pose (ref. §11).
+        Cells filled only by refinement take their refined gray as colour."""
+        h, w = self.depth_m.shape
+        vv, uu = np.nonzero(self.depth_m > 0)
+        s = self.res_m
+        pts = np.stack(
+            [(uu - w // 2 + 0.5) * s, (vv - h // 2 + 0.5) * s, self.depth_m[vv, uu]], axis=1
+        )
+        xyz = (pts @ self.R_W_C.T + self.p_W_m).astype(np.float32)
+        rgb = self.bgr[vv, uu, ::-1].copy()
+        no_colour = ~rgb.any(axis=1)
+        rgb[no_colour] = np.clip(self.gray[vv, uu][no_colour] * 255.0 + 0.5, 0, 255)[:, None]
+        return xyz, rgb.astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What `track()` tells about one frame.
+
+    `p_W_m` / `R_W_C` are None unless `trusted`: a frame the tracker could not
+    match carries no pose at all, so nothing downstream can send it.
+    """
+
+    t_s: float
+    state: TrackState
+    trusted: bool
+    p_W_m: np.ndarray | None
+    R_W_C: np.ndarray | None
+    pose_var: np.ndarray  # (6,) variances x, y, z [m^2], roll, pitch, yaw [rad^2]
+    quality: int  # 0 (none) .. 100
+    psr: float
+    keyframe_id: int
+    new_keyframe: bool
+    reset_counter: int
+    lost_reason: str | None
+    shift_cells: tuple[float, float]
+    tz_m: float
+    res_m: float
+    rotation_residual_rad: np.ndarray  # (3,) in key axes; z is not observed (0)
+    attitude_offset_s: float
+    matched_cells: int
+    finished_keyframes: tuple[KeyframeCloud, ...] = ()
+
+    @property
+    def q_W_C_xyzw(self) -> np.ndarray | None:
+        return None if self.R_W_C is None else Rotation.from_matrix(self.R_W_C).as_quat()

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING, Protocol
 
 from onboard import NislamError
 from onboard.frames import AttitudeSource, CameraIntrinsics, RgbdFrame
-from onboard.nislam import KeyframeCloud, NislamTracker, TrackResult
+from onboard.frames import KeyframeCloud, TrackResult
+from onboard.nislam import NislamTracker
 
 if TYPE_CHECKING:  # config imports TRACKER_NAMES from here
     from onboard.config import Config

@@ -17,7 +17,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from onboard.frames import CameraIntrinsics, RgbdFrame
-from onboard.nislam import NislamParams, NislamTracker, TrackState
+from onboard.frames import TrackState
+from onboard.nislam import NislamParams, NislamTracker
 
 # A 320 x 240 camera with the field of view of a 640 x 480 one at fx = 500;
 # every pixel is used (pixel_stride 1), as every 2nd of a VGA image would be.
