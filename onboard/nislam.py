@@ -297,7 +297,11 @@ class NislamTracker:
     def _match(
         self, key: _Key, cloud: Cloud, r_cur: np.ndarray, attitude: AttitudeSource, t_att: float
     ) -> tuple[np.ndarray, Peak, float, np.ndarray, int] | None:
-        r_rel = key.R_W_C.T @ r_cur  # R_key^-1 R_cur (ref. §2)
+        # The key's attitude is looked up again at the current offset estimate,
+        # so key and frame share one clock while the offset settles.
+        r_key = attitude.rotation_at(key.t_s + self._calib.offset_s)
+        r_key = key.R_W_C if r_key is None else r_key
+        r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
         img = project(cloud, r_rel, self.shape, key.img.res_m)
         if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
             return None
