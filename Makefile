@@ -5,8 +5,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+MAVPROXY := $(BIN)/mavproxy.py
 
-.PHONY: venv run test bench
+.PHONY: venv run test bench bench-outputs
 
 venv: $(STAMP)
 
@@ -15,13 +16,27 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $@
 
-# Until the synthetic-flight demo exists, the main job replays the shared TUM
-# sequence that lives beside the checkout.
+# The main job: fly a synthetic 20 s orbit (exact ground truth, no shared data
+# needed) into results/sim_circle, then replay it with the NI-SLAM tracker.
 run: $(STAMP)
-	$(BIN)/nislam replay ../shared/data/tum_fr1_rpy --out results/tum_fr1_rpy
+	$(BIN)/nislam sim circle --seconds 20 --out results/sim_circle
+	$(BIN)/nislam replay results/sim_circle --out results/sim_circle/replay
 
-test: $(STAMP)
+# MAVProxy is the receiving peer of one test (tests/test_mavlink_mavproxy.py).
+# Installed without its dependencies: it requires opencv-python, which would
+# overwrite our opencv-python-headless (both install the cv2 module). Headless
+# (--daemon --non-interactive) it needs only pymavlink, pyserial and numpy,
+# which pyproject.toml already brings.
+$(MAVPROXY): $(STAMP)
+	$(BIN)/python -m pip install --no-deps 'MAVProxy==1.8.75'
+	touch $@
+
+test: $(STAMP) $(MAVPROXY)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/nislam bench
+
+# MAVLink send rate and jitter, per-frame cost of the outputs in the loop.
+bench-outputs: $(STAMP)
+	$(BIN)/python scripts/bench_outputs.py

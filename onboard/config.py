@@ -1,8 +1,11 @@
 """Typed configuration: defaults in code, overrides from a TOML file and the CLI.
 
 Sections map one-to-one onto frozen dataclasses: `[replay]` -> ReplayConfig,
-`[attitude]` -> AttitudeErrorConfig, `[tracker]` -> TrackerConfig and
-`[nislam]` -> the tracker's own `NislamParams`. The `[nislam]` keys are read
+`[attitude]` -> AttitudeErrorConfig, `[tracker]` -> TrackerConfig,
+`[nislam]` -> the tracker's own `NislamParams`, `[mavlink]` -> MavlinkConfig
+and `[zenoh]` -> ZenohConfig (the outputs); `[ahrs]`, `[myahrs]`,
+`[autopilot]`, `[oak]` and `[record]` -> the driver and recording sections
+(AhrsConfig ... RecordConfig). The `[nislam]` keys are read
 from that dataclass's fields, so a parameter added to the tracker is
 configurable (and validated by its type) without touching this module.
 
@@ -15,8 +18,10 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import re
 import sys
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -59,12 +64,143 @@ class TrackerConfig:
     name: str = "nislam"
 
 
+MOUNT_NAMES = ("forward", "down", "custom")
+WORLD_FRAMES = ("frd", "flu")
+MAVLINK_MESSAGES = ("odometry", "vision_position")
+ZENOH_MODES = ("peer", "client", "router")
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    """The vision-position feed to the flight controller (onboard/mavlink_out.py)."""
+
+    enabled: bool = False
+    connect: str = "udpout:127.0.0.1:14550"  # pymavlink connection string
+    baud: int = 921600  # serial baud rate unless `connect` names one ("/dev/ttyAMA0,921600")
+    system_id: int = 1  # our MAVLink system id: the vehicle's (the autopilot's) id
+    component_id: int = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+    message: str = "odometry"  # or "vision_position" (VISION_POSITION/SPEED_ESTIMATE)
+    mount: str = "forward"  # camera mount R_B_C: "forward", "down" or "custom"
+    mount_q_B_C_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)  # "custom"
+    world_frame: str = "frd"  # axes of the tracker world W: "frd" (z down) or "flu" (z up)
+    degraded_quality: int = 20  # tracking below this quality is "degraded" (CRITICAL)
+    jump_m: float = 0.1  # a step longer than this ...
+    jump_speed_m_s: float = 10.0  # ... and faster than this is a jump: reset_counter + 1
+    velocity_window_s: float = 0.1  # velocity from poses up to this far apart
+    heartbeat_period_s: float = 1.0
+    stale_s: float = 0.5  # no tracker result for this long = lost ("no frames")
+    reconnect_s: float = 1.0  # retry a link that failed after this long
+    queue_frames: int = 8  # results waiting for the sender; the oldest is dropped
+    set_origin: bool = False  # send SET_GPS_GLOBAL_ORIGIN and SET_HOME_POSITION at start
+    origin_lat_deg: float = 0.0
+    origin_lon_deg: float = 0.0
+    origin_alt_m: float = 0.0  # above mean sea level
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """Pose, status and map publishing (onboard/zenoh_out.py) and `nislam listen`."""
+
+    enabled: bool = False
+    vehicle: str = "drone1"  # keys live under nislam/<vehicle>/
+    mode: str = "peer"  # zenoh session mode: "peer", "client" or "router"
+    connect: tuple[str, ...] = ()  # endpoints to connect to, e.g. "tcp/192.168.1.10:7447"
+    listen: tuple[str, ...] = ()  # endpoints to listen on, e.g. "tcp/0.0.0.0:7447"
+    multicast_scouting: bool = False  # find peers by UDP multicast (off: explicit endpoints)
+    status_period_s: float = 1.0
+    queue_frames: int = 32  # poses waiting for the publisher; the oldest is dropped
+    map_max_mb: float = 512.0  # key frames kept for late joiners; the oldest go first
+
+
+# Drivers (drivers/) and `nislam record`. The flight-controller link the
+# autopilot attitude source uses is the [mavlink] one (connect, baud,
+# system_id = the autopilot's system, reconnect_s): one link per autopilot.
+# The camera mount R_B_C is [mavlink] mount / mount_q_B_C_xyzw.
+AHRS_SOURCES = ("none", "myahrs", "autopilot", "oak_imu")
+OAK_STEREO_PRESETS = ("DEFAULT", "FAST_ACCURACY", "FAST_DENSITY", "HIGH_DETAIL", "ROBOTICS",
+                      "DENSITY", "ACCURACY")
+OAK_IMU_WORLDS = ("enu", "ned")
+_IDENTITY_Q = (0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class AhrsConfig:
+    """Which AHRS feeds the attitude buffer (drivers/attitude.py), and the buffer."""
+
+    source: str = "myahrs"  # "myahrs", "autopilot", "oak_imu" or "none"
+    buffer_samples: int = 1024  # samples kept (10 s at 100 Hz)
+    max_age_s: float = 0.25  # newest sample older than this = no attitude
+    max_gap_s: float = 0.1  # no interpolation across a longer gap between samples
+
+
+@dataclass(frozen=True)
+class MyAhrsConfig:
+    """myAHRS+ on a serial port (drivers/myahrs.py)."""
+
+    port: str = "/dev/myahrs"  # a stable udev symlink, not /dev/ttyACMn
+    baud: int = 115200
+    divider: int = 1  # output rate 100 / divider Hz
+    latency_ms: float = 0.0  # subtracted from each sample's arrival stamp
+    q_B_A_xyzw: tuple[float, float, float, float] = _IDENTITY_Q  # AHRS axes -> body FRD
+    silence_s: float = 1.0  # no sample this long: send the start-up commands again
+    reopen_s: float = 3.0  # no sample this long: close and reopen the port
+    reconnect_max_s: float = 2.0  # reopen backoff ceiling
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    """ATTITUDE_QUATERNION from the autopilot over the [mavlink] link."""
+
+    rate_hz: float = 50.0  # requested with MAV_CMD_SET_MESSAGE_INTERVAL
+    target_component: int = 1  # the autopilot's component (0 = any)
+    latency_ms: float = 0.0  # autopilot-internal delay, subtracted from mapped stamps
+    q_B_A_xyzw: tuple[float, float, float, float] = _IDENTITY_Q  # autopilot body -> body
+    retry_s: float = 1.0  # re-request when unanswered or the stream stops this long
+    clock_window_s: float = 10.0  # boot-time offset: minimum over this window
+
+
+@dataclass(frozen=True)
+class OakConfig:
+    """The OAK-D camera and its IMU (drivers/oak.py)."""
+
+    device: str = ""  # device id (MxId); "" = the first one found
+    width: int = 640  # colour output size, depth aligned to it
+    height: int = 400
+    fps: float = 30.0
+    mono_width: int = 640  # stereo pair size
+    mono_height: int = 400
+    undistort: bool = True  # undistort colour on the device
+    stereo_preset: str = "DEFAULT"  # StereoDepth.PresetMode name
+    imu_rate_hz: int = 100  # rotation vector rate (ahrs.source = "oak_imu")
+    imu_world: str = "enu"  # axes of the rotation vector's world (BNO08x: East-North-Up)
+    imu_q_B_A_xyzw: tuple[float, float, float, float] = _IDENTITY_Q  # IMU axes -> body FRD
+    search_s: float = 3.0  # device search per attempt
+    frame_timeout_s: float = 2.0  # no frame this long = device lost, reconnect
+    reconnect_max_s: float = 5.0  # reconnect backoff ceiling
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """`nislam record` (drivers/recorder.py)."""
+
+    png_compression: int = 1  # 0-9: PNG zlib level (1 keeps up with 30 Hz on one core)
+    queue_frames: int = 30  # frames waiting for the writer thread; when full the oldest is dropped
+    start_timeout_s: float = 30.0  # give up when the camera is not up by then
+
+
 @dataclass(frozen=True)
 class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     attitude: AttitudeErrorConfig = field(default_factory=AttitudeErrorConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     nislam: NislamParams = field(default_factory=NislamParams)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    ahrs: AhrsConfig = field(default_factory=AhrsConfig)
+    myahrs: MyAhrsConfig = field(default_factory=MyAhrsConfig)
+    autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
+    oak: OakConfig = field(default_factory=OakConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
 
 
 SECTIONS: dict[str, type] = {
@@ -72,6 +208,13 @@ SECTIONS: dict[str, type] = {
     "attitude": AttitudeErrorConfig,
     "tracker": TrackerConfig,
     "nislam": NislamParams,
+    "mavlink": MavlinkConfig,
+    "zenoh": ZenohConfig,
+    "ahrs": AhrsConfig,
+    "myahrs": MyAhrsConfig,
+    "autopilot": AutopilotConfig,
+    "oak": OakConfig,
+    "record": RecordConfig,
 }
 
 
@@ -110,6 +253,49 @@ class Choice:
         return f"must be one of {', '.join(repr(o) for o in self.options)}"
 
 
+@dataclass(frozen=True)
+class Check:
+    """Any other rule: `problem(value)` returns what is wrong, or None."""
+
+    problem: Callable[[Any], str | None]
+
+    def violation(self, value: Any) -> str | None:
+        return self.problem(value)
+
+
+_MAVLINK_HOST_PORT = re.compile(r"^(udp|udpin|udpout|udpbcast|tcp|tcpin|mcast):[^:]*:\d{1,5}$")
+_ZENOH_ENDPOINT = re.compile(r"^[a-z0-9]+/\S+$")
+_KEY_CHUNK = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def _mavlink_connect_problem(value: str) -> str | None:
+    """pymavlink connection strings: `udpout:HOST:PORT`, `tcp:HOST:PORT`, ...,
+    or a serial device with an optional `,BAUD`."""
+    if not value.strip():
+        return "must not be empty"
+    scheme = value.split(":", 1)[0]
+    if ":" in value and scheme in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin", "mcast"):
+        if not _MAVLINK_HOST_PORT.match(value):
+            return f"must look like '{scheme}:HOST:PORT'"
+    return None
+
+
+def _zenoh_endpoints_problem(value: tuple[str, ...]) -> str | None:
+    bad = [v for v in value if not _ZENOH_ENDPOINT.match(v)]
+    return f"holds {bad[0]!r}: endpoints look like 'tcp/HOST:PORT'" if bad else None
+
+
+def _key_chunk_problem(value: str) -> str | None:
+    if _KEY_CHUNK.match(value):
+        return None
+    return "must be one zenoh key chunk: letters, digits, '_', '-', '.'"
+
+
+def _unit_quaternion_problem(value: tuple[float, ...]) -> str | None:
+    norm = math.sqrt(sum(v * v for v in value))
+    return None if abs(norm - 1.0) < 1e-3 else f"must be a unit quaternion (norm {norm:.4g})"
+
+
 POSITIVE = Range(lo=0.0, lo_open=True)
 NON_NEGATIVE = Range(lo=0.0)
 SHARE = Range(lo=0.0, hi=1.0, lo_open=True)  # (0, 1]
@@ -118,7 +304,7 @@ ANY = Range()
 
 # Range rules by qualified key. Keys not listed fall back to DEFAULT_RULES by
 # type (ints >= 0; floats only need to be finite, which the type check does).
-RULES: dict[str, Range | Choice] = {
+RULES: dict[str, Range | Choice | Check] = {
     "replay.assoc_max_dt_s": POSITIVE,
     "replay.gt_max_gap_s": NON_NEGATIVE,
     "attitude.noise_deg": NON_NEGATIVE,
@@ -152,10 +338,71 @@ RULES: dict[str, Range | Choice] = {
     "nislam.psr_lost": NON_NEGATIVE,
     "nislam.gate_gray": POSITIVE,
     "nislam.gate_depth_m": POSITIVE,
-    "nislam.rotation_residual_max_rad": NON_NEGATIVE,
-    "nislam.rotation_residual_gain": FRACTION,
+    "nislam.depth_tilt_max_rad": NON_NEGATIVE,
     "nislam.time_offset_s": ANY,
     "nislam.time_offset_max_s": NON_NEGATIVE,
+    # outputs: MAVLink
+    "mavlink.connect": Check(_mavlink_connect_problem),
+    "mavlink.baud": POSITIVE,
+    "mavlink.system_id": Range(1, 255),
+    "mavlink.component_id": Range(1, 255),
+    "mavlink.message": Choice(MAVLINK_MESSAGES),
+    "mavlink.mount": Choice(MOUNT_NAMES),
+    "mavlink.mount_q_B_C_xyzw": Check(_unit_quaternion_problem),
+    "mavlink.world_frame": Choice(WORLD_FRAMES),
+    "mavlink.degraded_quality": Range(0, 100),
+    "mavlink.jump_m": NON_NEGATIVE,
+    "mavlink.jump_speed_m_s": POSITIVE,
+    "mavlink.velocity_window_s": NON_NEGATIVE,
+    "mavlink.heartbeat_period_s": POSITIVE,
+    "mavlink.stale_s": POSITIVE,
+    "mavlink.reconnect_s": POSITIVE,
+    "mavlink.queue_frames": POSITIVE,
+    "mavlink.origin_lat_deg": Range(-90.0, 90.0),
+    "mavlink.origin_lon_deg": Range(-180.0, 180.0),
+    "mavlink.origin_alt_m": ANY,
+    # outputs: zenoh
+    "zenoh.vehicle": Check(_key_chunk_problem),
+    "zenoh.mode": Choice(ZENOH_MODES),
+    "zenoh.connect": Check(_zenoh_endpoints_problem),
+    "zenoh.listen": Check(_zenoh_endpoints_problem),
+    "zenoh.status_period_s": POSITIVE,
+    "zenoh.queue_frames": POSITIVE,
+    "zenoh.map_max_mb": POSITIVE,
+    # drivers and recording
+    "ahrs.source": Choice(AHRS_SOURCES),
+    "ahrs.buffer_samples": Range(lo=2),
+    "ahrs.max_age_s": POSITIVE,
+    "ahrs.max_gap_s": POSITIVE,
+    "myahrs.port": Check(lambda v: None if v.strip() else "must not be empty"),
+    "myahrs.baud": POSITIVE,
+    "myahrs.divider": Range(1, 100),
+    "myahrs.latency_ms": ANY,
+    "myahrs.q_B_A_xyzw": Check(_unit_quaternion_problem),
+    "myahrs.silence_s": POSITIVE,
+    "myahrs.reopen_s": POSITIVE,
+    "myahrs.reconnect_max_s": POSITIVE,
+    "autopilot.rate_hz": Range(0.0, 1000.0, lo_open=True),
+    "autopilot.target_component": Range(0, 255),
+    "autopilot.latency_ms": ANY,
+    "autopilot.q_B_A_xyzw": Check(_unit_quaternion_problem),
+    "autopilot.retry_s": POSITIVE,
+    "autopilot.clock_window_s": POSITIVE,
+    "oak.width": POSITIVE,
+    "oak.height": POSITIVE,
+    "oak.fps": POSITIVE,
+    "oak.mono_width": POSITIVE,
+    "oak.mono_height": POSITIVE,
+    "oak.stereo_preset": Choice(OAK_STEREO_PRESETS),
+    "oak.imu_rate_hz": Range(1, 400),
+    "oak.imu_world": Choice(OAK_IMU_WORLDS),
+    "oak.imu_q_B_A_xyzw": Check(_unit_quaternion_problem),
+    "oak.search_s": POSITIVE,
+    "oak.frame_timeout_s": POSITIVE,
+    "oak.reconnect_max_s": POSITIVE,
+    "record.png_compression": Range(0, 9),
+    "record.queue_frames": POSITIVE,
+    "record.start_timeout_s": POSITIVE,
 }
 DEFAULT_RULES: dict[type, Range] = {int: NON_NEGATIVE, float: ANY}
 

@@ -61,10 +61,9 @@ class NislamParams:
     gate_depth_m: float = 0.1  # |Delta - median| for a well-matched cell
     min_matched_cells: int = 200
     search_radius_m: float = 0.1  # peak search window around the predicted shift
-    estimate_rotation_residual: bool = True
-    rotation_residual_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
-    rotation_residual_gain: float = 0.0  # share of the residual removed from the lateral translation
-    calibrate_time_offset: bool = True
+    depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
+    depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
+    calibrate_time_offset: bool = True  # estimate the attitude time offset online
     calibrate_every_n_frames: int = 4  # layer correlation for the calibration on every n-th frame
     calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
     layer_min_gap_m: float = 0.2  # near/far layers must differ this much in mean depth
@@ -167,6 +166,28 @@ def _layer_image(img: AxonometricImage, split_m: float, near: bool, down: int) -
     return cv2.resize(_whiten_masked(img.gray, mask), (w // down, h // down), interpolation=cv2.INTER_AREA)
 
 
+@dataclass(frozen=True)
+class _DepthFit:
+    """Result of the depth step (Eq. 18 and the tilt of the differences)."""
+
+    tz_m: float  # camera translation along the key's optical axis
+    theta_rad: np.ndarray  # tilt of the depth differences as a rotation (x, y, 0)
+    z_mean_m: float  # mean key depth of the matched cells
+    matched: int  # matched cells (every other row and column)
+    var_z_m2: float  # scatter of the depth differences over the matched cells
+
+
+@dataclass(frozen=True)
+class _Match:
+    """A frame matched against the key: pose and what the result reports."""
+
+    p_W_m: np.ndarray
+    peak: Peak
+    depth: _DepthFit
+    theta_rad: np.ndarray  # residual rotation seen by the colour layers (0 if not measured)
+    pose_var: np.ndarray  # (6,) in the world frame
+
+
 @dataclass
 class _Prev:
     """The last trusted frame, kept to seed a new key when a match fails."""
@@ -259,9 +280,9 @@ class NislamTracker:
             self._lost = True
             return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
 
-        p_W, peak, tz, theta, matched = outcome
-        self._prev = _Prev(frame.t_s, cloud, p_W, r_cur)
-        self._last_trusted_p = p_W
+        peak = outcome.peak
+        self._prev = _Prev(frame.t_s, cloud, outcome.p_W_m, r_cur)
+        self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
         if new_key:
             # The switching frame is posed against the old key, then becomes the
@@ -271,9 +292,9 @@ class NislamTracker:
             t_s=frame.t_s,
             state=TrackState.TRACKING,
             trusted=True,
-            p_W_m=p_W,
+            p_W_m=outcome.p_W_m,
             R_W_C=r_cur,
-            pose_var=self._pose_variance(peak, key.img.res_m, matched),
+            pose_var=outcome.pose_var,
             quality=self._quality(peak.psr),
             psr=peak.psr,
             keyframe_id=self._key.keyframe_id,
@@ -281,11 +302,11 @@ class NislamTracker:
             reset_counter=self._reset_counter,
             lost_reason=None,
             shift_cells=(peak.du_cells, peak.dv_cells),
-            tz_m=tz,
+            tz_m=outcome.depth.tz_m,
             res_m=key.img.res_m,
-            rotation_residual_rad=theta,
+            rotation_residual_rad=outcome.theta_rad,
             attitude_offset_s=self._calib.offset_s,
-            matched_cells=matched,
+            matched_cells=outcome.depth.matched,
             finished_keyframes=tuple(finished),
         )
 
@@ -296,7 +317,7 @@ class NislamTracker:
     # ------------------------------------------------------------ matching
     def _match(
         self, key: _Key, cloud: Cloud, r_cur: np.ndarray, attitude: AttitudeSource, t_att: float
-    ) -> tuple[np.ndarray, Peak, float, np.ndarray, int] | None:
+    ) -> _Match | None:
         # The key's attitude is looked up again at the current offset estimate,
         # so key and frame share one clock while the offset settles.
         r_key = attitude.rotation_at(key.t_s + self._calib.offset_s)
@@ -315,38 +336,29 @@ class NislamTracker:
         depth = self._depth_translation(key, img, du, dv)
         if depth is None:
             return None
-        tz, theta, z_mean_m, matched = depth
         self._frame_count += 1
-        gain = self.p.rotation_residual_gain
         # Calibrate on every frame until the offset has settled, then sparsely.
-        settling = self.p.calibrate_time_offset and self._calib.n < self.p.calibrate_settle_updates
-        every = 1 if gain > 0.0 or settling else self.p.calibrate_every_n_frames
-        theta_img = None
+        settling = self._calib.n < self.p.calibrate_settle_updates
+        every = 1 if settling else self.p.calibrate_every_n_frames
+        theta_img = np.zeros(3)
         if key.layers is not None and self._frame_count % every == 0:
-            theta_img = key.layers.residual(img, (peak.du_cells, peak.dv_cells), self.p)
-            if theta_img is not None and self.p.calibrate_time_offset:
-                self._calibrate(key, r_rel, attitude, t_att, theta_img)
+            theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), self.p)
+            if theta is not None:
+                theta_img = theta
+                self._calibrate(key, r_rel, attitude, t_att, theta)
         if peak.psr > self.p.psr_refine:
-            self._refine(key, img, du, dv, tz)
+            self._refine(key, img, du, dv, depth.tz_m)
         key.shifts = [*key.shifts[-1:], (peak.du_cells, peak.dv_cells)]
+        # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
-        # Content moves opposite to the camera (ref. §9): t = -d s. A residual
-        # rotation theta adds theta x p to every point, a lateral shift growing
-        # with depth; with a gain, the layers' theta is removed at the matched
-        # cells' mean depth.
-        if theta_img is not None:
-            theta = theta_img
-        else:
-            gain = 0.0
-        t_x = -peak.du_cells * s - gain * theta[1] * z_mean_m
-        t_y = -peak.dv_cells * s + gain * theta[0] * z_mean_m
-        t_inc = np.array([t_x, t_y, tz])
+        t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
         p_W = key.p_W_m + key.R_W_C @ t_inc
-        return p_W, peak, tz, theta, matched
+        pose_var = self._pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
+        return _Match(p_W, peak, depth, theta_img, pose_var)
 
     def _depth_translation(
         self, key: _Key, img: AxonometricImage, du: int, dv: int
-    ) -> tuple[float, np.ndarray, float, int] | None:
+    ) -> _DepthFit | None:
         """Eq. 18 with robust gating, plus the residual tilt.
 
         Delta = D~ - D_key over cells seen in both whose gray agrees (T_c); the
@@ -354,7 +366,6 @@ class NislamTracker:
         lets fast z motion reject every cell (ref. pitfalls). Under a residual
         rotation theta the differences form a plane,
         Delta = -t_z - theta_x y + theta_y x, fitted in closed form.
-        Returns (t_z, theta, mean matched key depth, matched cells).
         """
         ks, cs = _overlap(self.shape, du, dv)
         if ks is None:
@@ -383,9 +394,15 @@ class NislamTracker:
         col_w, row_w = wgt.sum(axis=0), wgt.sum(axis=1)
         sum_d = float(wd.sum())
         z_mean = float((wgt * d_key).sum()) / n
+        # The authors' sigma_z^2 (ref. §10): scatter of Delta around its mean.
+        var_z = max(float(np.vdot(wd, delta)) / n - (sum_d / n) ** 2, 0.0)
         theta = np.zeros(3)
-        if not self.p.estimate_rotation_residual:
-            return -sum_d / n, theta, z_mean, int(n)
+
+        def fit(tz: float) -> _DepthFit:
+            return _DepthFit(float(tz), theta, z_mean, int(n), var_z)
+
+        if not self.p.depth_tilt_fit:
+            return fit(-sum_d / n)
         # Normal equations of Delta ~ a + b (x - mx) + c (y - my), centred on
         # the matched cells so a (their mean) stays well determined even when
         # the overlap is a thin strip far from the axis.
@@ -397,14 +414,14 @@ class NislamTracker:
         try:
             b, c = np.linalg.solve(ata, atb)
         except np.linalg.LinAlgError:
-            return -sum_d / n, theta, z_mean, int(n)
-        lim = self.p.rotation_residual_max_rad
+            return fit(-sum_d / n)
+        lim = self.p.depth_tilt_max_rad
         theta[0] = np.clip(-c, -lim, lim)
         theta[1] = np.clip(b, -lim, lim)
         # -t_z is the plane's value on the key's optical axis (x = y = 0); the
         # clipped tilt bounds how far a poor fit can move it from the mean.
         tz = -sum_d / n + theta[1] * mx - theta[0] * my
-        return float(tz), theta, z_mean, int(n)
+        return fit(tz)
 
     def _calibrate(
         self,
@@ -485,8 +502,7 @@ class NislamTracker:
         img = project(prev.cloud, np.eye(3), self.shape, res, with_colour=True)
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells)
         filt.train(_whiten(img))
-        needs_layers = p.calibrate_time_offset or p.rotation_residual_gain > 0.0
-        layers = _DepthLayers.train(img, p) if needs_layers else None
+        layers = _DepthLayers.train(img, p) if p.calibrate_time_offset else None
         self._key = _Key(
             keyframe_id=self._next_key_id,
             t_s=prev.t_s,
@@ -541,15 +557,21 @@ class NislamTracker:
         span = max(self.p.psr_refine - self.p.psr_lost, 1e-6)
         return int(np.clip(round(100.0 * (psr - self.p.psr_lost) / span), 1, 100))
 
-    def _pose_variance(self, peak: Peak, res_m: float, matched: int) -> np.ndarray:
-        """Lateral variance from the response treated as an isotropic 2-D
-        Gaussian (ref. §10: s^2 * volume / (2 pi peak)), floored at a tenth of
-        a cell; depth variance shrinks with the matched cells."""
+    def _pose_variance(
+        self, peak: Peak, res_m: float, var_z_m2: float, r_W_key: np.ndarray
+    ) -> np.ndarray:
+        """Position variances in the world frame, attitude variances (ref. §10).
+
+        In key axes: lateral from the response treated as an isotropic 2-D
+        Gaussian (s^2 * volume / (2 pi peak)), floored at a tenth of a cell;
+        depth from the scatter of the matched depth differences, floored at
+        5 mm. The diagonal is carried into the world frame (diag of R S R^T).
+        """
         vol = max(peak.response_sum, 0.0)
         var_xy = res_m**2 * max(vol / (2.0 * math.pi * max(peak.value, 1e-9)), 0.01)
-        var_z = 0.01**2 + 1.0 / max(matched, 1)
+        var_key = np.array([var_xy, var_xy, max(var_z_m2, 0.005**2)])
         rot = 2.0 * 4.592449e-6  # authors' fixed attitude variance (rad^2)
-        return np.array([var_xy, var_xy, var_z, rot, rot, rot])
+        return np.concatenate([(r_W_key * r_W_key) @ var_key, [rot, rot, rot]])
 
 
 def _whiten(img: AxonometricImage) -> np.ndarray:

@@ -257,12 +257,7 @@ def build_metrics(
         **timing,
         "attitude_source": attitude_label,
         "attitude_offset_s": track_log.attitude_offset_s,
-        "skipped": {
-            "malformed_lines": seq.skipped.malformed_lines,
-            "missing_files": seq.skipped.missing_files,
-            "unreadable_files": seq.skipped.unreadable_files,
-            "unassociated": seq.skipped.unassociated,
-        },
+        "skipped": seq.skipped.as_dict(),  # every reader count (sim_replay.tum.SkipCounts)
         "map_points": map_points,
         "keyframe_clouds": len(track_log.clouds),
         "plot_written": plot_written,

@@ -181,9 +181,19 @@ def apply_error_model(
     t = np.asarray(t_s, dtype=np.float64).ravel()
     q_true, valid = _interpolate_q(truth, t - model.offset_ms * 1e-3, max_gap_s)
     t, q_true = t[valid], q_true[valid]
+    q_meas = perturb_samples(t, q_true, model)
+    return Trajectory.from_samples(t, np.zeros((len(t), 3)), q_meas)
+
+
+def perturb_samples(t_s, q_true_xyzw, model: AttitudeErrorModel) -> np.ndarray:
+    """Bias random walk and white noise of `model` applied in the body frame to
+    true orientations already taken at the sensor's stamps minus its offset
+    (`t_s` sorted, only the intervals matter). Returns q_meas_xyzw (N, 4)."""
+    t = np.asarray(t_s, dtype=np.float64).ravel()
+    q_true = np.asarray(q_true_xyzw, dtype=np.float64).reshape(-1, 4)
     n = len(t)
     if n == 0 or (model.noise_deg == 0 and model.bias_deg_per_sqrt_s == 0):
-        return Trajectory.from_samples(t, np.zeros((n, 3)), q_true)
+        return q_true.copy()
     rng = np.random.default_rng(model.seed)
     # Draw both streams always, so switching one term on or off does not change
     # the realisation of the other for the same seed.
@@ -194,7 +204,7 @@ def apply_error_model(
                          axis=0)
     r_true = Rotation.from_quat(q_true)
     r_meas = r_true * Rotation.from_rotvec(bias_rad) * Rotation.from_rotvec(noise_rad)
-    return Trajectory.from_samples(t, np.zeros((n, 3)), r_meas.as_quat())
+    return r_meas.as_quat()
 
 
 def attitude_for_replay(

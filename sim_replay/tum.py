@@ -3,8 +3,11 @@
 A sequence folder holds `rgb.txt` and `depth.txt` (timestamp + relative file
 name per line), optionally `groundtruth.txt`, `attitude.txt` and `camera.toml`
 (see docs/design.md). The reader survives damaged recordings: malformed list
-lines, missing files, undecodable or truncated images are skipped, counted in
-`Sequence.skipped` and reported in one summary warning instead of one line each.
+lines, repeated or out-of-order stamps, missing files, undecodable or truncated
+images, all-zero depth frames, NaN and spike attitude samples are skipped;
+dropped frames, clock jumps and attitude gaps are noticed. Everything is
+counted in `Sequence.skipped` and reported in one summary warning instead of
+one line each.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import re
 import struct
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import cv2
@@ -35,6 +38,15 @@ log = logging.getLogger(__name__)
 
 DEFAULT_MAX_ASSOC_DT_S = 0.02  # TUM associate.py default: 20 ms
 DEFAULT_GT_MAX_GAP_S = 0.2  # lead's decision: bridge GT gaps up to 200 ms (fr1/rpy has 130 ms)
+# A forward step this long in the colour stamps is a clock jump (or an outage
+# the reader cannot tell from one), not a run of dropped frames.
+CLOCK_JUMP_MIN_S = 1.0
+# A frame interval over 1.5 median intervals has lost round(dt / median) - 1 frames.
+_DROP_GAP_FACTOR = 1.5
+# An attitude sample this far from both neighbours, which agree with each other,
+# is a spike: 10 deg in one 10 ms sample is 1000 deg/s, beyond what a drone that
+# NI-SLAM can track turns, and far above AHRS noise (~0.1 deg).
+ATTITUDE_SPIKE_DEG = 10.0
 
 _IDENTITY_Q_XYZW = (0.0, 0.0, 0.0, 1.0)
 _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
@@ -86,23 +98,69 @@ _TUM_NAME_RE = re.compile(r"(?:freiburg|fr)_?([123])(?!\d)")
 
 @dataclass
 class SkipCounts:
-    """What the reader dropped, and why. `unassociated` counts list entries
-    (colour or depth) that found no partner within the association window."""
+    """What the reader dropped or noticed, and why.
+
+    Skipped (left out of the replay):
+      malformed_lines: unparsable lines in any list, ground-truth or attitude file.
+      missing_files: listed image files that do not exist.
+      unreadable_files: image files that do not decode (of which
+        `truncated_files` were cut short).
+      unassociated: list entries (colour or depth) with no partner within the
+        association window.
+      duplicate_stamps / out_of_order_stamps: list entries whose stamp repeats
+        or precedes one listed before them in the same list; stale entries are
+        dropped as the onboard loop drops a stale frame.
+      empty_depth_frames: frames whose depth image decodes but holds no
+        measurement at all.
+      attitude_nan_samples / attitude_spikes: attitude.txt samples with a
+        non-finite value, or an isolated jump of more than ATTITUDE_SPIKE_DEG.
+    Noticed (nothing to skip; the recording lacks them):
+      dropped_frames: frames missing from the colour stream, from its gaps.
+      clock_jumps: forward steps of at least CLOCK_JUMP_MIN_S in the colour stamps.
+      attitude_gaps: gaps in attitude.txt longer than DEFAULT_GT_MAX_GAP_S (the
+        replay does not bridge them), a clock jump's own gap not included.
+    List-entry counts count each list: a frame repeated in both lists counts 2.
+    """
 
     malformed_lines: int = 0
     missing_files: int = 0
     unreadable_files: int = 0
     unassociated: int = 0
+    duplicate_stamps: int = 0
+    out_of_order_stamps: int = 0
+    truncated_files: int = 0
+    empty_depth_frames: int = 0
+    attitude_nan_samples: int = 0
+    attitude_spikes: int = 0
+    dropped_frames: int = 0
+    clock_jumps: int = 0
+    attitude_gaps: int = 0
 
     @property
     def total(self) -> int:
-        return self.malformed_lines + self.missing_files + self.unreadable_files + self.unassociated
+        """Everything skipped (`truncated_files` is part of `unreadable_files`;
+        the noticed counts are not skips)."""
+        return (self.malformed_lines + self.missing_files + self.unreadable_files
+                + self.unassociated + self.duplicate_stamps + self.out_of_order_stamps
+                + self.empty_depth_frames + self.attitude_nan_samples + self.attitude_spikes)
+
+    @property
+    def noticed(self) -> int:
+        return self.dropped_frames + self.clock_jumps + self.attitude_gaps
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
     def summary(self) -> str:
-        return (
+        base = (
             f"malformed_lines={self.malformed_lines} missing_files={self.missing_files} "
             f"unreadable_files={self.unreadable_files} unassociated={self.unassociated}"
         )
+        # The four historical counts always; the fault kinds only when present.
+        extra = [f"{k}={v}" for k, v in self.as_dict().items()
+                 if v and k not in ("malformed_lines", "missing_files", "unreadable_files",
+                                    "unassociated")]
+        return " ".join([base, *extra])
 
 
 # --------------------------------------------------------------------------- camera
@@ -262,10 +320,68 @@ def associate(
     return pairs
 
 
-def _read_attitude_file(path: Path) -> tuple[Trajectory, int]:
-    """`timestamp qx qy qz qw` lines -> Trajectory with zero positions."""
+def drop_stale_entries(
+    entries: list[tuple[float, str]],
+) -> tuple[list[tuple[float, str]], int, int]:
+    """Keep, in list order, the entries whose stamp is later than every stamp
+    kept before them. Returns (kept, duplicates, out_of_order): a repeated stamp
+    is a duplicate, an earlier one out of order. Like the onboard loop, which
+    drops a stale frame rather than reorder, nothing is moved."""
+    kept: list[tuple[float, str]] = []
+    duplicates = out_of_order = 0
+    last = -math.inf
+    for entry in entries:
+        if entry[0] > last:
+            kept.append(entry)
+            last = entry[0]
+        elif entry[0] == last:
+            duplicates += 1
+        else:
+            out_of_order += 1
+    return kept, duplicates, out_of_order
+
+
+def stream_gaps(t_s) -> tuple[int, list[tuple[float, float]]]:
+    """(dropped frames, clock jumps as (before, after) stamps) of a frame stream.
+
+    A step of CLOCK_JUMP_MIN_S or more is a jump; a shorter step over 1.5
+    median intervals has lost round(step / median) - 1 frames. Repeated stamps
+    are ignored, so a duplicated or swapped frame is no gap.
+    """
+    t = np.unique(np.asarray(t_s, dtype=np.float64))
+    if len(t) < 3:
+        return 0, []
+    dt = np.diff(t)
+    median = float(np.median(dt))
+    jump = dt >= CLOCK_JUMP_MIN_S
+    jumps = [(float(t[i]), float(t[i + 1])) for i in np.flatnonzero(jump)]
+    gap = ~jump & (dt > _DROP_GAP_FACTOR * median)
+    dropped = int(np.sum(np.round(dt[gap] / median) - 1)) if median > 0 else 0
+    return dropped, jumps
+
+
+@dataclass(frozen=True)
+class AttitudeFileReport:
+    """What `read_attitude_file` skipped or noticed (see SkipCounts)."""
+
+    malformed_lines: int = 0
+    nan_samples: int = 0
+    spikes: int = 0
+    gaps: tuple[tuple[float, float], ...] = ()  # (last sample before, first after)
+
+
+def read_attitude_file(
+    path: Path, max_gap_s: float = DEFAULT_GT_MAX_GAP_S
+) -> tuple[Trajectory, AttitudeFileReport]:
+    """`timestamp qx qy qz qw` lines -> Trajectory (R_W_B, zero positions).
+
+    Lines that do not parse as five numbers are malformed; rows with a NaN or
+    infinite value are NaN samples; isolated jumps are spikes. All three are
+    left out. Gaps longer than `max_gap_s` between the remaining samples are
+    reported, not filled.
+    """
     rows: list[list[float]] = []
-    bad = 0
+    bad = nan = 0
     for line in path.read_text(errors="replace").splitlines():
         s = line.strip()
         if not s or s.startswith("#"):
@@ -276,12 +392,42 @@ def _read_attitude_file(path: Path) -> tuple[Trajectory, int]:
         except ValueError:
             bad += 1
             continue
-        if len(vals) != 5 or not all(math.isfinite(v) for v in vals):
+        if len(vals) != 5:
             bad += 1
-            continue
-        rows.append(vals)
+        elif not all(math.isfinite(v) for v in vals):
+            nan += 1
+        else:
+            rows.append(vals)
     a = np.asarray(rows, dtype=np.float64).reshape(-1, 5)
-    return Trajectory.from_samples(a[:, 0], np.zeros((len(a), 3)), a[:, 1:5]), bad
+    a = a[np.argsort(a[:, 0], kind="stable")]
+    norm = np.linalg.norm(a[:, 1:5], axis=1)
+    keep = norm > 1e-6
+    keep[1:] &= np.diff(a[:, 0]) > 0
+    a, norm = a[keep], norm[keep]
+    a[:, 1:5] /= norm[:, None]
+    spike = _attitude_spikes(a[:, 1:5])
+    a = a[~spike]
+    dt = np.diff(a[:, 0])
+    gaps = tuple((float(a[i, 0]), float(a[i + 1, 0]))
+                 for i in np.flatnonzero(dt > max_gap_s + 1e-9))
+    traj = Trajectory.from_samples(a[:, 0], np.zeros((len(a), 3)), a[:, 1:5])
+    return traj, AttitudeFileReport(bad, nan, int(spike.sum()), gaps)
+
+
+def _attitude_spikes(q_xyzw: np.ndarray) -> np.ndarray:
+    """Samples more than ATTITUDE_SPIKE_DEG from both neighbours while the
+    neighbours agree with each other within it (a jump out and straight back)."""
+    n = len(q_xyzw)
+    spike = np.zeros(n, dtype=bool)
+    if n < 3:
+        return spike
+    # Rotation angle between unit quaternions a, b: 2 acos(|a . b|).
+    cos_half = math.cos(math.radians(ATTITUDE_SPIKE_DEG) / 2.0)
+    far_prev = np.abs(np.sum(q_xyzw[1:-1] * q_xyzw[:-2], axis=1)) < cos_half
+    far_next = np.abs(np.sum(q_xyzw[1:-1] * q_xyzw[2:], axis=1)) < cos_half
+    near_pair = np.abs(np.sum(q_xyzw[:-2] * q_xyzw[2:], axis=1)) >= cos_half
+    spike[1:-1] = far_prev & far_next & near_pair
+    return spike
 
 
 # --------------------------------------------------------------------------- images
@@ -368,7 +514,8 @@ class Sequence:
 
     Build with `open_sequence`. `frame_times_s` lists associated frames whose
     two files exist; a frame whose file then fails to decode is skipped during
-    iteration (counted in `skipped.unreadable_files`).
+    iteration (counted in `skipped.unreadable_files`), and so is a frame whose
+    depth image holds no measurement (`skipped.empty_depth_frames`).
     """
 
     def __init__(
@@ -400,6 +547,8 @@ class Sequence:
         self.intrinsics = camera.intrinsics()
         self._maps = _build_maps(camera) if (undistort and camera.is_distorted) else None
         self._unreadable: set[Path] = set()
+        self._truncated: set[Path] = set()
+        self._empty_depth: set[Path] = set()
 
     def __len__(self) -> int:
         return len(self._pairs)
@@ -409,7 +558,7 @@ class Sequence:
 
     def frames(self) -> Iterator[RgbdFrame]:
         """Yield frames in time order; one summary warning at the end if any
-        file could not be decoded."""
+        frame could not be used."""
         dropped = 0
         for i in range(len(self._pairs)):
             frame = self.read_frame(i)
@@ -419,16 +568,24 @@ class Sequence:
                 yield frame
         if dropped:
             log.warning(
-                "%s: %d of %d frames skipped as unreadable; totals: %s",
+                "%s: %d of %d frames skipped as unreadable or without depth; totals: %s",
                 self.path, dropped, len(self._pairs), self.skipped.summary(),
             )
 
     def read_frame(self, index: int) -> RgbdFrame | None:
-        """Decode and undistort frame `index`; None (and counted) if a file is unreadable."""
+        """Decode and undistort frame `index`; None (and counted) if a file is
+        unreadable or the depth image is all zero."""
         pair = self._pairs[index]
         bgr = self._read_color(pair.rgb_path)
         depth_raw = self._read_depth(pair.depth_path) if bgr is not None else None
         if bgr is None or depth_raw is None:
+            return None
+        if not depth_raw.any():
+            # A sensor fault (or a wall inside the minimum range): no measurement
+            # at all, so nothing a tracker could use.
+            self._empty_depth.add(pair.depth_path)
+            self.skipped.empty_depth_frames = len(self._empty_depth)
+            log.debug("%s: skipping %s: depth image is all zero", self.path, pair.depth_path.name)
             return None
         if self._maps is not None:
             m = self._maps
@@ -464,6 +621,9 @@ class Sequence:
         if path not in self._unreadable:
             self._unreadable.add(path)
             self.skipped.unreadable_files = len(self._unreadable)
+            if reason.startswith("truncated"):
+                self._truncated.add(path)
+                self.skipped.truncated_files = len(self._truncated)
         log.debug("%s: skipping %s: %s", self.path, path.name, reason)
 
     def _read_color(self, path: Path) -> np.ndarray | None:
@@ -515,6 +675,14 @@ def open_sequence(
     rgb, bad_rgb = read_file_list(seq_dir / "rgb.txt")
     depth, bad_depth = read_file_list(seq_dir / "depth.txt")
     skipped.malformed_lines = bad_rgb + bad_depth
+    # Gaps are judged on every colour stamp listed (a stale entry still is a
+    # frame the camera took), before stale entries are dropped.
+    skipped.dropped_frames, jumps = stream_gaps([t for t, _f in rgb])
+    skipped.clock_jumps = len(jumps)
+    rgb, dup_rgb, ooo_rgb = drop_stale_entries(rgb)
+    depth, dup_depth, ooo_depth = drop_stale_entries(depth)
+    skipped.duplicate_stamps = dup_rgb + dup_depth
+    skipped.out_of_order_stamps = ooo_rgb + ooo_depth
 
     # Associate on the full lists first, then drop pairs with a missing file:
     # pairing only the files that survived could marry a colour frame to the
@@ -551,17 +719,25 @@ def open_sequence(
     attitude = None
     att_path = seq_dir / "attitude.txt"
     if att_path.is_file():
-        attitude, bad = _read_attitude_file(att_path)
-        skipped.malformed_lines += bad
+        attitude, report = read_attitude_file(att_path)
+        skipped.malformed_lines += report.malformed_lines
+        skipped.attitude_nan_samples = report.nan_samples
+        skipped.attitude_spikes = report.spikes
+        # A clock jump steps the attitude stamps too; that gap is the jump's.
+        skipped.attitude_gaps = sum(
+            1 for a0, a1 in report.gaps if not any(a0 < j1 and j0 < a1 for j0, j1 in jumps)
+        )
         if len(attitude) == 0:
             log.warning("%s: attitude.txt holds no valid sample; ignoring it", seq_dir)
             attitude = None
 
-    if skipped.total:
+    if skipped.total or skipped.noticed:
         # One line for the whole listing; per-file details are at debug level.
         # Unpaired entries alone are normal in TUM recordings (colour and depth
-        # streams are not synchronised), so they do not deserve a warning.
-        damaged = skipped.malformed_lines + skipped.missing_files
+        # streams are not synchronised), so they do not deserve a warning; nor
+        # do the few frames a Kinect-class camera drops now and then.
+        damaged = (skipped.total - skipped.unassociated + skipped.clock_jumps
+                   + skipped.attitude_gaps)
         log.log(logging.WARNING if damaged else logging.INFO,
                 "%s: %d usable frames; skipped while listing: %s",
                 seq_dir, len(pairs), skipped.summary())

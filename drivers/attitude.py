@@ -1,0 +1,278 @@
+"""The attitude interface every AHRS driver feeds and the tracker reads.
+
+Drivers turn what their sensor reports (the AHRS axes A in the sensor's world)
+into `AttitudeSample`s of the vehicle body B in the AHRS world W (gravity
+aligned, z down) with `to_body_sample`, using the AHRS-to-body rotation from
+config, and push them into an `AttitudeBuffer`. The buffer implements
+`onboard.frames.AttitudeSource`: `rotation_at(t_s)` slerps between the two
+samples around `t_s` and returns R_W_C = R_W_B(t) R_B_C with the camera
+mount, or None ("no attitude") when the newest sample is older than
+`max_age_s`, the query lies outside the buffered span, or the two samples
+around it are further apart than `max_gap_s` (an outage).
+
+All stamps are capture times on one monotonic clock in nanoseconds
+(`time.monotonic_ns` live; a replay clock on the recording's time base in
+replay). `rotation_at` takes seconds on the same clock, as RgbdFrame.t_s.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+Quat = tuple[float, float, float, float]
+
+IDENTITY_Q_XYZW: Quat = (0.0, 0.0, 0.0, 1.0)
+
+# Camera mount presets R_B_C (camera optical -> body FRD), see design.md:
+# forward: camera z = body x, camera x = body y, camera y = body z.
+# down: camera z = body z, image top towards the nose (camera -y = body x).
+MOUNT_R_B_C: dict[str, np.ndarray] = {
+    "forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+    "down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+}
+
+# R_NED_ENU: East-North-Up world axes into North-East-Down.
+R_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+@dataclass(frozen=True)
+class AttitudeSample:
+    """Body orientation at a capture time: `q_W_B_xyzw` rotates body vectors
+    into the AHRS world W; `t_ns` is the capture time on the monotonic clock."""
+
+    t_ns: int
+    q_W_B_xyzw: Quat
+
+    @property
+    def t_s(self) -> float:
+        return self.t_ns * 1e-9
+
+
+@dataclass(frozen=True)
+class BufferStats:
+    pushed: int = 0
+    rejected_out_of_order: int = 0  # stamp not after the newest sample
+    rejected_invalid: int = 0  # non-finite or zero-norm quaternion
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_mul(a: Quat, b: Quat) -> Quat:
+    """Hamilton product a*b of xyzw quaternions (rotation b first, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+def quat_conj(q: Quat) -> Quat:
+    return (-q[0], -q[1], -q[2], q[3])
+
+
+def quat_normalized(q) -> Quat | None:
+    """Unit xyzw quaternion, or None if non-finite or (near) zero."""
+    x, y, z, w = (float(c) for c in q)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(n) or n < 1e-6:
+        return None
+    return (x / n, y / n, z / n, w / n)
+
+
+def quat_slerp(q0: Quat, q1: Quat, w: float) -> Quat:
+    x0, y0, z0, w0 = q0
+    x1, y1, z1, w1 = q1
+    dot = x0 * x1 + y0 * y1 + z0 * z1 + w0 * w1
+    if dot < 0.0:  # q and -q are one rotation: take the short way
+        x1, y1, z1, w1, dot = -x1, -y1, -z1, -w1, -dot
+    if dot > 0.9999995:  # under ~0.1 deg apart: normalised lerp is exact enough
+        a, b = 1.0 - w, w
+    else:
+        theta = math.acos(dot)
+        s = math.sin(theta)
+        a, b = math.sin((1.0 - w) * theta) / s, math.sin(w * theta) / s
+    q = (a * x0 + b * x1, a * y0 + b * y1, a * z0 + b * z1, a * w0 + b * w1)
+    n = math.sqrt(sum(c * c for c in q))
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+def quat_to_matrix(q: Quat) -> np.ndarray:
+    x, y, z, w = q
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return np.array(
+        [
+            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+        ]
+    )
+
+
+def matrix_to_quat(r: np.ndarray) -> Quat:
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(r, dtype=np.float64)).as_quat()
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def to_body_sample(t_ns: int, q_W_A_xyzw: Quat, q_B_A_xyzw: Quat) -> AttitudeSample | None:
+    """The body's attitude from the AHRS's: R_W_B = R_W_A R_A_B, with R_A_B
+    the inverse of the configured AHRS-to-body rotation R_B_A. None when the
+    reported quaternion is not a rotation."""
+    q = quat_normalized(q_W_A_xyzw)
+    if q is None:
+        return None
+    return AttitudeSample(int(t_ns), quat_mul(q, quat_conj(q_B_A_xyzw)))
+
+
+def mount_rotation(mount: str, q_B_C_xyzw: Quat = IDENTITY_Q_XYZW) -> np.ndarray:
+    """R_B_C for a mount preset, or from `q_B_C_xyzw` when `mount` is "custom"."""
+    if mount in MOUNT_R_B_C:
+        return MOUNT_R_B_C[mount].copy()
+    if mount != "custom":
+        raise ValueError(f"unknown camera mount {mount!r}")
+    q = quat_normalized(q_B_C_xyzw)
+    if q is None:
+        raise ValueError("camera mount quaternion has zero norm")
+    return quat_to_matrix(q)
+
+
+# --------------------------------------------------------------------------- buffer
+
+
+class AttitudeBuffer:
+    """Bounded, thread-safe store of body attitude samples; an AttitudeSource.
+
+    `push` is called by one driver thread, `rotation_at` by the loop. The lock
+    guards two list operations at a time, never a device read.
+    """
+
+    def __init__(
+        self,
+        R_B_C: np.ndarray | None = None,
+        capacity: int = 1024,
+        max_age_s: float = 0.25,
+        max_gap_s: float = 0.1,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if capacity < 2:
+            raise ValueError("attitude buffer capacity must be >= 2")
+        self.R_B_C = np.eye(3) if R_B_C is None else np.asarray(R_B_C, dtype=np.float64)
+        self.capacity = int(capacity)
+        self.max_age_s = float(max_age_s)
+        self.max_gap_s = float(max_gap_s)
+        self.clock_ns = clock_ns
+        self._lock = threading.Lock()
+        self._t_s: list[float] = []
+        self._samples: list[AttitudeSample] = []
+        self._stats = BufferStats()
+        self._new = threading.Condition(self._lock)
+
+    # -- writing (driver threads)
+
+    def push(self, sample: AttitudeSample) -> bool:
+        """Store a sample; False (and counted) if it is not newer than the
+        newest one or its quaternion is not a rotation."""
+        q = quat_normalized(sample.q_W_B_xyzw)
+        with self._lock:
+            if q is None:
+                self._stats = _bump(self._stats, rejected_invalid=1)
+                return False
+            if self._samples and sample.t_ns <= self._samples[-1].t_ns:
+                self._stats = _bump(self._stats, rejected_out_of_order=1)
+                return False
+            self._samples.append(AttitudeSample(sample.t_ns, q))
+            self._t_s.append(sample.t_ns * 1e-9)
+            if len(self._samples) >= 2 * self.capacity:  # trim in chunks: amortised O(1)
+                del self._samples[: -self.capacity]
+                del self._t_s[: -self.capacity]
+            self._stats = _bump(self._stats, pushed=1)
+            self._new.notify_all()
+        return True
+
+
+    # -- reading (the loop, the recorder)
+
+    def rotation_at(self, t_s: float) -> np.ndarray | None:
+        """R_W_C (3x3) at `t_s`, or None: no attitude there (see module doc)."""
+        r_w_b = self.body_rotation_at(t_s)
+        return None if r_w_b is None else r_w_b @ self.R_B_C
+
+    def body_rotation_at(self, t_s: float) -> np.ndarray | None:
+        q = self.body_quat_at(t_s)
+        return None if q is None else quat_to_matrix(q)
+
+    def body_quat_at(self, t_s: float) -> Quat | None:
+        """q_W_B_xyzw at `t_s` slerped between its neighbours, or None."""
+        now_s = self.clock_ns() * 1e-9
+        with self._lock:
+            ts = self._t_s
+            n = len(ts)
+            if n == 0 or not (now_s - ts[-1] <= self.max_age_s):
+                return None  # nothing, or the newest sample is stale
+            lo = max(0, n - self.capacity)
+            if not (ts[lo] <= t_s <= ts[-1]):  # also rejects NaN
+                return None
+            i = bisect.bisect_right(ts, t_s, lo)
+            if ts[i - 1] == t_s:
+                return self._samples[i - 1].q_W_B_xyzw
+            t0, t1 = ts[i - 1], ts[i]
+            q0, q1 = self._samples[i - 1].q_W_B_xyzw, self._samples[i].q_W_B_xyzw
+        if t1 - t0 > self.max_gap_s:
+            return None
+        return quat_slerp(q0, q1, (t_s - t0) / (t1 - t0))
+
+    def newest(self) -> AttitudeSample | None:
+        with self._lock:
+            return self._samples[-1] if self._samples else None
+
+    def samples_after(self, t_ns: int | None) -> list[AttitudeSample]:
+        """Buffered samples stamped after `t_ns` (all when None), oldest first."""
+        with self._lock:
+            lo = max(0, len(self._samples) - self.capacity)
+            if t_ns is None:
+                return self._samples[lo:]
+            i = bisect.bisect_right(self._t_s, t_ns * 1e-9, lo)
+            while i > lo and self._samples[i - 1].t_ns > t_ns:  # float rounding of ns stamps
+                i -= 1
+            while i < len(self._samples) and self._samples[i].t_ns <= t_ns:
+                i += 1
+            return self._samples[i:]
+
+    def wait_covered(self, t_s: float, timeout_s: float) -> bool:
+        """Block until a sample stamped at or after `t_s` is in (the AHRS has
+        caught up with a capture time); False on timeout."""
+        with self._new:
+            return self._new.wait_for(lambda: bool(self._t_s) and self._t_s[-1] >= t_s,
+                                      timeout_s)
+
+    def wait_for_samples(self, count: int, timeout_s: float) -> bool:
+        """Block until `count` samples have been pushed in total (tests, start-up)."""
+        with self._new:
+            return self._new.wait_for(lambda: self._stats.pushed >= count, timeout_s)
+
+    @property
+    def stats(self) -> BufferStats:
+        with self._lock:
+            return self._stats
+
+    def __len__(self) -> int:
+        with self._lock:
+            return min(len(self._samples), self.capacity)
+
+
+def _bump(stats: BufferStats, **deltas: int) -> BufferStats:
+    return BufferStats(**{k: getattr(stats, k) + deltas.get(k, 0)
+                          for k in stats.__dataclass_fields__})

@@ -1,0 +1,123 @@
+"""Where tracker results go: the `Output` protocol, a null object and a fan-out.
+
+The tracking loop holds one `Output` and calls it on every frame without
+asking which outputs are configured:
+
+    with make_outputs(cfg) as out:
+        for frame in frames:
+            out.publish(tracker.track(frame, attitude))
+        last = tracker.finish()
+        if last is not None:
+            out.publish_keyframe(last)
+
+Contract of every output: `publish` and `publish_keyframe` return in well
+under a millisecond and never raise for I/O problems (a slow or missing peer,
+a link that went away): the work happens on the output's own threads behind
+a bounded queue that drops the oldest entry. `close` stops those threads.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from types import TracebackType
+from typing import TYPE_CHECKING, Protocol
+
+from onboard.frames import KeyframeCloud, TrackResult
+
+if TYPE_CHECKING:
+    from onboard.config import Config
+    from onboard.mavlink_out import SharedLink
+
+log = logging.getLogger(__name__)
+
+
+class Output(Protocol):
+    def publish(self, result: TrackResult) -> None:
+        """Hand over one frame's result (its finished key frames included)."""
+        ...
+
+    def publish_keyframe(self, cloud: KeyframeCloud) -> None:
+        """Hand over a key frame outside a result (`tracker.finish()`)."""
+        ...
+
+    def close(self) -> None:
+        """Flush what is queued (briefly) and stop."""
+        ...
+
+
+class NullOutput:
+    """Accepts everything and does nothing: the loop's output when none is
+    configured (bench runs, tests)."""
+
+    def publish(self, result: TrackResult) -> None:
+        pass
+
+    def publish_keyframe(self, cloud: KeyframeCloud) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> NullOutput:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class OutputGroup:
+    """Several outputs behind one: each call goes to every member in order."""
+
+    def __init__(self, outputs: Sequence[Output]) -> None:
+        self.outputs = tuple(outputs)
+
+    def publish(self, result: TrackResult) -> None:
+        for out in self.outputs:
+            out.publish(result)
+
+    def publish_keyframe(self, cloud: KeyframeCloud) -> None:
+        for out in self.outputs:
+            out.publish_keyframe(cloud)
+
+    def close(self) -> None:
+        """Close every member, even when one fails (the first error is raised)."""
+        first: BaseException | None = None
+        for out in self.outputs:
+            try:
+                out.close()
+            except Exception as e:  # noqa: BLE001 - the others must still close
+                log.error("closing %s failed: %s", type(out).__name__, e)
+                first = first or e
+        if first is not None:
+            raise first
+
+    def __enter__(self) -> OutputGroup:
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def make_outputs(cfg: Config, mavlink_link: SharedLink | None = None) -> OutputGroup:
+    """The outputs `cfg` enables ([mavlink] and [zenoh] `enabled`); an empty
+    group (a null output) when none is. `mavlink_link`: the autopilot link
+    when something else owns it (drivers.fc_link.FcLink); otherwise the
+    MAVLink output opens [mavlink] connect itself. pymavlink and zenoh load
+    only when their output is enabled."""
+    outputs: list[Output] = []
+    try:
+        if cfg.mavlink.enabled:
+            from onboard.mavlink_out import MavlinkOutput
+
+            outputs.append(MavlinkOutput(cfg.mavlink, link=mavlink_link))
+        if cfg.zenoh.enabled:
+            from onboard.zenoh_out import ZenohOutput
+
+            outputs.append(ZenohOutput(cfg.zenoh))
+    except BaseException:
+        OutputGroup(outputs).close()
+        raise
+    return OutputGroup(outputs)

@@ -1,0 +1,226 @@
+"""Replay drivers: a recorded TUM-layout sequence played at real-time pace
+through the same interfaces as the hardware drivers.
+
+- `ReplayClock` maps our monotonic clock onto the recording's time base, so
+  replayed stamps stay the recording's own and the attitude buffer's
+  staleness check ("newest sample older than max_age_s") works as live.
+- `ReplayCamera` is a `drivers.camera.CameraSource`: it publishes each frame
+  into a newest-frame slot FRAME_DELIVERY_S after the replay clock reaches
+  its stamp (decoding it before), and closes the slot after the last one.
+- `ReplayAttitude` pushes `AttitudeSample`s (R_W_B) into a sink when the
+  clock reaches their stamps: `attitude.txt` (AHRS body in W) when the
+  sequence has one, else ground truth (the camera's own orientation, mount
+  identity, as replays of TUM data do).
+
+`open_replay(seq_dir, ...)` builds the three on one clock.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drivers.attitude import AttitudeBuffer, AttitudeSample, quat_to_matrix
+from drivers.base import DriverThread
+from drivers.camera import FrameSlot
+from onboard import NislamError
+from onboard.frames import RgbdFrame
+
+from .tum import CameraModel, Sequence, open_sequence
+
+log = logging.getLogger(__name__)
+
+PREROLL_S = 0.2  # attitude plays this long before the first frame
+TAIL_S = 0.2  # ... and this long after the last one
+# A camera hands a frame over some time after its capture (exposure, readout,
+# USB): replayed frames appear this long after their stamps, so the AHRS
+# samples after the capture time are there too, as live.
+FRAME_DELIVERY_S = 0.033
+
+
+class ReplayClock:
+    """Recording time = `t0_s` + (monotonic now - start) * `speed`, once started."""
+
+    def __init__(self, t0_s: float, speed: float = 1.0,
+                 mono_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        if speed <= 0:
+            raise ValueError("replay speed must be > 0")
+        self.t0_s = float(t0_s)
+        self.speed = float(speed)
+        self.mono_ns = mono_ns
+        self._start_ns: int | None = None
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        """Start the clock (first call wins; later calls keep the first start)."""
+        with self._lock:
+            if self._start_ns is None:
+                self._start_ns = self.mono_ns()
+
+    def now_s(self) -> float:
+        start = self._start_ns
+        if start is None:
+            return self.t0_s
+        return self.t0_s + (self.mono_ns() - start) * 1e-9 * self.speed
+
+    def now_ns(self) -> int:
+        """Recording time in ns: the clock an AttitudeBuffer checks staleness on."""
+        return int(round(self.now_s() * 1e9))
+
+    def wait_until(self, t_s: float, stop: threading.Event) -> bool:
+        """Wait until recording time `t_s`; False if `stop` was set first."""
+        while True:
+            remaining = (t_s - self.now_s()) / self.speed
+            if remaining <= 0:
+                return not stop.is_set()
+            if stop.wait(min(remaining, 0.5)):
+                return False
+
+
+class ReplayCamera(DriverThread):
+    """Frames of `seq` at their stamps into a FrameSlot (a CameraSource)."""
+
+    def __init__(self, seq: Sequence, clock: ReplayClock, camera: CameraModel | None = None,
+                 delivery_s: float = FRAME_DELIVERY_S) -> None:
+        super().__init__(f"replay_camera:{seq.path.name}")
+        self.seq = seq
+        self.clock = clock
+        self.delivery_s = delivery_s
+        self.camera = camera or seq.camera  # as frames are delivered (see delivered_camera)
+        self.slot = FrameSlot()
+        self.published = 0
+        self.unreadable = 0
+
+    def start(self) -> None:
+        self.clock.start()
+        super().start()
+
+    def wait_camera(self, timeout_s: float) -> CameraModel | None:
+        return self.camera
+
+    def take(self, after_seq: int = 0, timeout_s: float = 0.0) -> tuple[int, RgbdFrame] | None:
+        return self.slot.take(after_seq, timeout_s)
+
+    @property
+    def exhausted(self) -> bool:
+        return self.slot.closed
+
+    def _run(self) -> None:
+        try:
+            for i in range(len(self.seq)):
+                frame = self.seq.read_frame(i)  # decode ahead of its stamp
+                if frame is None:
+                    self.unreadable += 1
+                    continue
+                if not self.clock.wait_until(frame.t_s + self.delivery_s, self._stop):
+                    return
+                self.slot.put(frame)
+                self.published += 1
+        finally:
+            self.slot.close()
+
+
+class ReplayAttitude(DriverThread):
+    """Attitude samples (t_s, q_W_B_xyzw) pushed into `sink` at their stamps."""
+
+    def __init__(self, t_s: np.ndarray, q_W_B_xyzw: np.ndarray, clock: ReplayClock,
+                 sink: Callable[[AttitudeSample], object], name: str = "replay_attitude") -> None:
+        super().__init__(name)
+        self.t_s = np.asarray(t_s, dtype=np.float64)
+        self.q_W_B_xyzw = np.asarray(q_W_B_xyzw, dtype=np.float64).reshape(-1, 4)
+        self.clock = clock
+        self.sink = sink
+        self.published = 0
+        self.finished = threading.Event()
+
+    def start(self) -> None:
+        self.clock.start()
+        super().start()
+
+    def _run(self) -> None:
+        try:
+            for t, q in zip(self.t_s, self.q_W_B_xyzw):
+                if not self.clock.wait_until(float(t), self._stop):
+                    return
+                self.sink(AttitudeSample(int(round(float(t) * 1e9)),
+                                         (float(q[0]), float(q[1]), float(q[2]), float(q[3]))))
+                self.published += 1
+        finally:
+            self.finished.set()
+
+
+def delivered_camera(camera: CameraModel, undistort: bool) -> CameraModel:
+    """The reader undistorts onto the same K: frames then have no distortion."""
+    if not (undistort and camera.is_distorted):
+        return camera
+    return CameraModel(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+                       camera.depth_scale, (), camera.q_B_C_xyzw)
+
+
+@dataclass
+class Replay:
+    """A sequence's replay drivers on one clock; start() and stop() both."""
+
+    seq: Sequence
+    clock: ReplayClock
+    camera: ReplayCamera
+    attitude: ReplayAttitude | None
+    buffer: AttitudeBuffer
+    attitude_label: str
+    stop_times_s: dict[str, float] = field(default_factory=dict)
+
+    def start(self) -> None:
+        self.clock.start()
+        if self.attitude is not None:
+            self.attitude.start()
+        self.camera.start()
+
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        """Stop both; `stop_times_s` records each join, as drivers.hardware.Hardware."""
+        ok = True
+        for t in (self.camera, self.attitude):
+            if t is not None:
+                ok = t.stop(timeout_s) and ok
+                self.stop_times_s[t.name] = t.last_stop_s or 0.0
+        return ok
+
+
+def open_replay(
+    seq_dir: Path | str,
+    *,
+    speed: float = 1.0,
+    buffer_capacity: int = 1024,
+    max_age_s: float = 0.25,
+    max_gap_s: float = 0.2,
+    assoc_max_dt_s: float = 0.02,
+    undistort: bool = True,
+    mono_ns: Callable[[], int] = time.monotonic_ns,
+) -> Replay:
+    """Replay drivers for a TUM-layout sequence; attitude within PREROLL_S
+    before the first frame to TAIL_S after the last is played."""
+    seq = open_sequence(seq_dir, assoc_max_dt_s, undistort)
+    t_first, t_last = float(seq.frame_times_s[0]), float(seq.frame_times_s[-1])
+    clock = ReplayClock(t_first - PREROLL_S, speed, mono_ns)
+    if seq.attitude is not None:
+        traj, label = seq.attitude, "attitude.txt"
+        R_B_C = quat_to_matrix(tuple(seq.camera.q_B_C_xyzw))
+    elif seq.groundtruth is not None:
+        traj, label = seq.groundtruth, "groundtruth.txt (camera orientation, mount identity)"
+        R_B_C = np.eye(3)
+    else:
+        traj, label, R_B_C = None, "none", quat_to_matrix(tuple(seq.camera.q_B_C_xyzw))
+    buffer = AttitudeBuffer(R_B_C, buffer_capacity, max_age_s, max_gap_s, clock.now_ns)
+    attitude = None
+    if traj is not None:
+        keep = (traj.t_s >= t_first - PREROLL_S) & (traj.t_s <= t_last + TAIL_S)
+        if not keep.any():
+            raise NislamError(f"{seq.path}: {label} has no sample near the frames")
+        attitude = ReplayAttitude(traj.t_s[keep], traj.q_xyzw[keep], clock, buffer.push)
+    camera = ReplayCamera(seq, clock, delivered_camera(seq.camera, undistort))
+    return Replay(seq, clock, camera, attitude, buffer, label)

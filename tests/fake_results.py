@@ -1,0 +1,72 @@
+"""TrackResults and key frames made from literals, for the output tests and
+scripts/bench_outputs.py."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from onboard.frames import KeyframeCloud, TrackResult, TrackState
+
+POSE_VAR = np.array([1e-4, 2e-4, 3e-4, 4e-6, 5e-6, 6e-6])
+
+
+def track_result(
+    t_s: float,
+    p_W_m: np.ndarray | None = None,
+    R_W_C: np.ndarray | None = None,
+    *,
+    trusted: bool = True,
+    state: TrackState | None = None,
+    quality: int = 60,
+    reset_counter: int = 0,
+    keyframe_id: int = 0,
+    lost_reason: str | None = None,
+    pose_var: np.ndarray = POSE_VAR,
+    finished: tuple[KeyframeCloud, ...] = (),
+    psr: float = 42.0,
+) -> TrackResult:
+    if trusted:
+        p = np.zeros(3) if p_W_m is None else np.asarray(p_W_m, dtype=np.float64)
+        r = np.eye(3) if R_W_C is None else np.asarray(R_W_C, dtype=np.float64)
+        var = np.asarray(pose_var, dtype=np.float64)
+    else:
+        p, r, var, quality, psr = None, None, np.full(6, np.nan), 0, float("nan")
+    return TrackResult(
+        t_s=t_s,
+        state=state or (TrackState.TRACKING if trusted else TrackState.LOST),
+        trusted=trusted,
+        p_W_m=p,
+        R_W_C=r,
+        pose_var=var,
+        quality=quality,
+        psr=psr,
+        keyframe_id=keyframe_id,
+        new_keyframe=bool(finished),
+        reset_counter=reset_counter,
+        lost_reason=lost_reason if not trusted else None,
+        shift_cells=(0.0, 0.0),
+        tz_m=0.0,
+        res_m=0.01,
+        rotation_residual_rad=np.zeros(3),
+        attitude_offset_s=0.0,
+        matched_cells=1000,
+        finished_keyframes=finished,
+    )
+
+
+def keyframe(keyframe_id: int, shape: tuple[int, int] = (60, 80), seed: int = 0,
+             fill: float = 0.6) -> KeyframeCloud:
+    """A key frame with random depth in a share `fill` of its cells, random
+    colours, some cells without colour (gray used), and a random pose."""
+    rng = np.random.default_rng(seed + 1000 * keyframe_id)
+    h, w = shape
+    depth = rng.uniform(0.3, 4.0, shape).astype(np.float32)
+    depth[rng.random(shape) > fill] = 0.0
+    bgr = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    bgr[rng.random(shape) < 0.1] = 0
+    gray = rng.random(shape)
+    angle = rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return KeyframeCloud(keyframe_id, 100.0 + keyframe_id, rng.normal(size=3), R,
+                         float(rng.uniform(0.005, 0.03)), depth, gray, bgr)

@@ -1,0 +1,262 @@
+"""zenoh publishing: the key-frame encoding, the pose message, and the
+publisher with `nislam listen` as the subscriber in another process."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from fake_results import keyframe, track_result
+from subproc import REPO, JsonLinesProcess, free_port
+
+from onboard.config import ZenohConfig
+from onboard.frames import KeyframeCloud
+from onboard.listen import MapListener
+from onboard.mapcodec import MapCodecError, MapKeyframe, decode_keyframe, encode_keyframe
+from onboard.ply import read_ply
+from onboard.zenoh_out import ZenohOutput, pose_message, session_config
+
+NISLAM = REPO / ".venv" / "bin" / "nislam"
+DT = 1.0 / 30.0
+
+
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+# --------------------------------------------------------------------------- encoding
+
+
+@pytest.mark.parametrize("fill", [0.0, 0.3, 1.0])
+def test_keyframe_round_trip_is_bit_exact(fill: float) -> None:
+    kf = keyframe(7, shape=(45, 61), fill=fill)  # odd sizes: the mask's last byte is partial
+    data = encode_keyframe(kf)
+    got = decode_keyframe(data)
+    xyz, rgb = kf.points()
+    gxyz, grgb = got.points()
+    assert same_bits(gxyz, xyz) and same_bits(grgb, rgb)
+    assert (got.keyframe_id, got.t_s, got.res_m) == (7, kf.t_s, kf.res_m)
+    assert same_bits(got.p_W_m, kf.p_W_m) and same_bits(got.R_W_C, kf.R_W_C)
+    assert encode_keyframe(got) == data
+    n = len(xyz)
+    assert len(data) == 136 + (45 * 61 + 7) // 8 + 7 * n  # about 7 bytes per point
+
+
+def test_keyframe_layout_matches_the_documentation() -> None:
+    kf = keyframe(3, shape=(8, 16))
+    data = encode_keyframe(kf)
+    magic, version, dsize, kid, h, w, n = struct.unpack_from("<4sBB2xiHHI", data)
+    assert (magic, version, dsize, kid, h, w) == (b"NSKF", 1, 4, 3, 8, 16)
+    assert struct.unpack_from("<d", data, 24)[0] == kf.t_s
+    assert struct.unpack_from("<3d", data, 32) == tuple(kf.p_W_m)
+    assert struct.unpack_from("<9d", data, 56) == tuple(kf.R_W_C.reshape(9))
+    assert struct.unpack_from("<d", data, 128)[0] == kf.res_m
+    mask = np.unpackbits(np.frombuffer(data, np.uint8, 16, 136), bitorder="little")
+    assert np.array_equal(mask.reshape(8, 16), kf.depth_m > 0) and mask.sum() == n
+    depth = np.frombuffer(data, "<f4", n, 152)
+    assert np.array_equal(depth, kf.depth_m[kf.depth_m > 0])
+    rgb = np.frombuffer(data, np.uint8, 3 * n, 152 + 4 * n).reshape(n, 3)
+    assert np.array_equal(rgb, kf.points()[1])
+
+
+def test_float64_depth_and_a_real_tracker_key_frame_round_trip(shared_data: Path) -> None:
+    kf = keyframe(1)
+    kf64 = KeyframeCloud(kf.keyframe_id, kf.t_s, kf.p_W_m, kf.R_W_C, kf.res_m,
+                         kf.depth_m.astype(np.float64), kf.gray, kf.bgr)
+    assert same_bits(decode_keyframe(encode_keyframe(kf64)).points()[0], kf64.points()[0])
+
+    from onboard.config import Config
+    from onboard.replay import track_sequence
+    from onboard.trackers import make_tracker
+    from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
+    from sim_replay.tum import open_sequence
+
+    seq = open_sequence(shared_data / "fixtures" / "tum_fr3_office_16frames", 0.02, True)
+    attitude, _ = attitude_for_replay(seq, AttitudeErrorModel(), 0.2)
+    tracker = make_tracker("nislam", seq.intrinsics, Config())
+    log = track_sequence(tracker, seq, attitude, None, progress=False)
+    assert log.clouds
+    for cloud in log.clouds:
+        xyz, rgb = cloud.points()
+        gxyz, grgb = decode_keyframe(encode_keyframe(cloud)).points()
+        assert same_bits(gxyz, xyz) and same_bits(grgb, rgb)
+
+
+def test_damaged_keyframe_messages_are_refused() -> None:
+    data = encode_keyframe(keyframe(2, shape=(10, 10)))
+    for bad in (data[:100], data[:-1], data + b"\0", b"XXXX" + data[4:],
+                data[:4] + b"\x02" + data[5:]):
+        with pytest.raises(MapCodecError):
+            decode_keyframe(bad)
+    flipped = bytearray(data)
+    flipped[136] ^= 0xFF  # mask no longer agrees with the point count
+    with pytest.raises(MapCodecError):
+        decode_keyframe(bytes(flipped))
+
+
+def test_pose_message_fields() -> None:
+    r = track_result(12.5, [1.0, 2.0, 3.0], quality=77, reset_counter=2, keyframe_id=4)
+    m = json.loads(json.dumps(pose_message(r, 9), allow_nan=False))
+    assert m["seq"] == 9 and m["t_s"] == 12.5 and m["state"] == "tracking" and m["trusted"]
+    assert m["p_W_m"] == [1.0, 2.0, 3.0] and m["q_W_C_xyzw"] == [0.0, 0.0, 0.0, 1.0]
+    assert (m["quality"], m["reset_counter"], m["keyframe_id"]) == (77, 2, 4)
+    lost = pose_message(track_result(13.0, trusted=False, lost_reason="no attitude"), 10)
+    assert lost["p_W_m"] is None and lost["pose_var"] is None and lost["psr"] is None
+    assert (lost["quality"], lost["lost_reason"], lost["state"]) == (-1, "no attitude", "lost")
+    json.dumps(lost, allow_nan=False)
+
+
+def test_session_config_defaults_to_no_multicast() -> None:
+    conf = session_config(ZenohConfig(connect=("tcp/127.0.0.1:7447",)))
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(conf.get_json("mode")) == "peer"
+    conf = session_config(ZenohConfig(), mode="client", listen=("tcp/127.0.0.1:1",))
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:1"]
+
+
+# --------------------------------------------------------------------------- publishing
+
+
+def wait_until(pred, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"{what} not met within {timeout} s"
+        time.sleep(0.02)
+
+
+def test_publisher_keeps_running_without_a_peer() -> None:
+    cfg = ZenohConfig(vehicle="alone", connect=(endpoint(),), queue_frames=64,
+                      status_period_s=0.05)
+    with ZenohOutput(cfg) as out:
+        slowest = 0.0
+        for i in range(300):
+            fin = (keyframe(i // 30, shape=(60, 80)),) if i % 30 == 29 else ()
+            t = time.perf_counter()
+            out.publish(track_result(i * DT, [0.01 * i, 0, 0], finished=fin))
+            slowest = max(slowest, time.perf_counter() - t)
+        wait_until(lambda: out.stats()["map_keyframes"] == 10, 30, "key frames stored")
+        wait_until(lambda: out.stats()["frames"] + out.stats()["dropped_poses"] == 300, 30,
+                   "poses handled")
+        stats = out.stats()
+        assert stats["errors"] == 0 and stats["map_points"] > 0
+        assert slowest < 0.25  # never a network wait (generous for a busy machine)
+        t = time.perf_counter()
+    assert time.perf_counter() - t < 5.0  # close does not hang either
+
+
+def test_queryable_answers_per_key_frame() -> None:
+    ep = endpoint()
+    with ZenohOutput(ZenohConfig(vehicle="q1", listen=(ep,))) as out:
+        kfs = [keyframe(i, shape=(20, 30)) for i in range(3)]
+        for kf in kfs:
+            out.publish_keyframe(kf)
+        wait_until(lambda: out.stats()["map_keyframes"] == 3, 30, "key frames stored")
+        with zenoh.open(session_config(ZenohConfig(connect=(ep,)))) as session:
+            listener = MapListener(session, "q1")
+            deadline = time.monotonic() + 30
+            got: list[MapKeyframe] = []
+            while len(got) < 3 and time.monotonic() < deadline:
+                got = listener.fetch_map(10.0)  # the peers may still be connecting
+            assert sorted(kf.keyframe_id for kf in got) == [0, 1, 2]
+            one = list(session.get("nislam/q1/map/keyframe/1", timeout=10.0))
+            assert [str(r.ok.key_expr) for r in one] == ["nislam/q1/map/keyframe/1"]
+            assert same_bits(decode_keyframe(one[0].ok.payload.to_bytes()).points()[0],
+                             kfs[1].points()[0])
+            listener.close()
+
+
+def start_listener(ep: str, vehicle: str, out: Path) -> JsonLinesProcess:
+    proc = JsonLinesProcess([str(NISLAM), "listen", "--connect", ep, "--vehicle", vehicle,
+                             "--json", "--out", str(out)])
+    proc.wait_for(lambda lines: any(m["type"] == "map" for m in lines), 60, "listener up")
+    return proc
+
+
+def test_poses_and_key_frames_reach_a_subscriber_in_another_process(tmp_path: Path) -> None:
+    ep = endpoint()
+    cfg = ZenohConfig(vehicle="v1", listen=(ep,), queue_frames=1000, status_period_s=0.2)
+    kfs = [keyframe(i, shape=(48, 64)) for i in range(4)]
+    with ZenohOutput(cfg) as out:
+        listener = start_listener(ep, "v1", tmp_path / "map.ply")
+        try:
+            assert out.wait_for_subscribers(30)
+            t0 = 5000.0
+            for i in range(150):
+                fin = (kfs[i // 40],) if i % 40 == 39 else ()
+                trusted = not 60 <= i < 63
+                out.publish(track_result(t0 + i * DT, [0.01 * i, 0.5, -0.2], trusted=trusted,
+                                         finished=fin, lost_reason="peak too weak"))
+            out.publish_keyframe(kfs[3])  # tracker.finish() at the end of a run
+            listener.wait_for(lambda lines: sum(m["type"] == "pose" for m in lines) >= 150
+                              and sum(m["type"] == "keyframe" for m in lines) >= 4, 60,
+                              "every pose and key frame")
+            listener.wait_for(lambda lines: any(m["type"] == "status" and m["frames"] == 150
+                                                for m in lines), 30, "a status")
+        finally:
+            rc = listener.stop(signal.SIGTERM)
+    assert rc == 0, listener.stderr
+    poses = listener.of_type("pose")
+    assert [m["seq"] for m in poses] == list(range(150))  # all, in order
+    assert [m["t_s"] for m in poses] == [5000.0 + i * DT for i in range(150)]
+    assert [m["trusted"] for m in poses] == [not 60 <= i < 63 for i in range(150)]
+    assert poses[10]["p_W_m"] == [0.1, 0.5, -0.2]
+    assert poses[61]["p_W_m"] is None and poses[61]["quality"] == -1
+    status = [m for m in listener.of_type("status") if m["frames"] == 150][-1]
+    assert (status["frames_lost"], status["map_keyframes"], status["dropped_poses"]) == (3, 4, 0)
+
+    events = listener.of_type("keyframe")
+    assert [e["keyframe_id"] for e in events] == [0, 1, 2, 3]
+    for e, kf in zip(events, kfs):  # exact floats through JSON
+        assert e["p_W_m"] == kf.p_W_m.tolist() and e["R_W_C"] == kf.R_W_C.tolist()
+        assert (e["t_s"], e["res_m"], e["points"]) == (kf.t_s, kf.res_m, len(kf.points()[0]))
+    # the map written on exit is the published clouds, bit for bit
+    xyz, rgb = read_ply(tmp_path / "map.ply")
+    assert same_bits(xyz, np.concatenate([kf.points()[0] for kf in kfs]))
+    assert same_bits(rgb, np.concatenate([kf.points()[1] for kf in kfs]))
+    saved = listener.of_type("saved")
+    assert saved and saved[0]["keyframes"] == 4
+
+
+def test_late_subscriber_gets_the_whole_map(tmp_path: Path) -> None:
+    ep = endpoint()
+    kfs = [keyframe(i, shape=(40, 50), seed=5) for i in range(6)]
+    with ZenohOutput(ZenohConfig(vehicle="late", listen=(ep,), status_period_s=0.2)) as out:
+        for i, kf in enumerate(kfs[:5]):
+            out.publish(track_result(i * DT, [0.0, 0.0, 0.0], finished=(kf,)))
+        wait_until(lambda: out.stats()["map_keyframes"] == 5, 30, "map stored")
+        listener = start_listener(ep, "late", tmp_path / "late.ply")
+        try:
+            fetched = listener.of_type("map")[0]
+            assert (fetched["fetched"], fetched["points"]) == (
+                5, sum(len(k.points()[0]) for k in kfs[:5]))
+            out.publish_keyframe(kfs[5])  # and it keeps the map up to date
+            listener.wait_for(lambda lines: any(m["type"] == "keyframe" and m["keyframe_id"] == 5
+                                                for m in lines), 30, "live key frame")
+        finally:
+            rc = listener.stop(signal.SIGINT)
+    assert rc == 0, listener.stderr
+    xyz, rgb = read_ply(tmp_path / "late.ply")
+    assert same_bits(xyz, np.concatenate([kf.points()[0] for kf in kfs]))
+    assert same_bits(rgb, np.concatenate([kf.points()[1] for kf in kfs]))
+
+
+def test_listen_refuses_a_bad_vehicle_id_in_one_line() -> None:
+    import subprocess
+
+    proc = subprocess.run([str(NISLAM), "listen", "--vehicle", "a/b"], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().count("\n") == 0 and "zenoh.vehicle" in proc.stderr
