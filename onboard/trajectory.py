@@ -67,7 +67,9 @@ class Trajectory:
         inside = (tq >= self.t_s[0]) & (tq <= self.t_s[-1])
         i = np.clip(i, 1, len(self.t_s) - 1)
         gap = self.t_s[i] - self.t_s[i - 1]
-        valid = inside & (gap <= max_gap_s + 1e-9)
+        # A query on a sample's own stamp is that sample, whatever gap follows.
+        on_sample = (tq == self.t_s[i - 1]) | (tq == self.t_s[i])
+        valid = inside & ((gap <= max_gap_s + 1e-9) | on_sample)
         if not valid.any():
             return p_out, q_out, valid
         iv = i[valid]

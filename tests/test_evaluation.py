@@ -137,10 +137,12 @@ def test_ground_truth_at_masks_outside_and_gaps() -> None:
         np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [5, 0, 0]]),
         np.tile([0.0, 0, 0, 1], (4, 1)),
     )
+    # 3.0 lies in the 3 s gap; 5.0 is the last sample itself (valid whatever
+    # gap precedes it); 6.0 would be extrapolation.
     sampled, valid = ground_truth_at(np.array([-0.5, 0.5, 1.5, 3.0, 5.0, 6.0]), gt, max_gap_s=1.5)
-    np.testing.assert_array_equal(valid, [False, True, True, False, False, False])
-    np.testing.assert_allclose(sampled.p_xyz_m[:, 0], [0.5, 1.5])
-    np.testing.assert_allclose(sampled.t_s, [0.5, 1.5])
+    np.testing.assert_array_equal(valid, [False, True, True, False, True, False])
+    np.testing.assert_allclose(sampled.p_xyz_m[:, 0], [0.5, 1.5, 5.0])
+    np.testing.assert_allclose(sampled.t_s, [0.5, 1.5, 5.0])
 
 
 def test_evaluate_rejects_mismatched_times() -> None:
