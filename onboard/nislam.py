@@ -140,14 +140,23 @@ class _DepthLayers:
         return cls(split, z_near, z_far, filters[0], filters[1])
 
     def residual(
-        self, img: AxonometricImage, shift_cells: tuple[float, float], p: "NislamParams"
+        self,
+        img: AxonometricImage,
+        shift_cells: tuple[float, float],
+        tz_m: float,
+        p: "NislamParams",
     ) -> np.ndarray | None:
-        """theta (x, y, 0) in key axes [rad], or None when a layer does not match."""
+        """theta (x, y, 0) in key axes [rad], or None when a layer does not match.
+
+        The frame's depths are the key's minus t_z, so its split moves by -t_z:
+        a fixed split would slide the layer boundary across the image as the
+        camera moves along its axis and bias the layer that loses cells.
+        """
         n = p.layer_downsample
         centre = (shift_cells[0] / n, shift_cells[1] / n)
         shifts = []
         for near, filt in ((True, self.near), (False, self.far)):
-            layer = _layer_image(img, self.split_m, near, n)
+            layer = _layer_image(img, self.split_m - tz_m, near, n)
             pk = find_peak(filt.response(layer), 2, centre, max(2, 6 // n))
             if not pk.psr >= p.psr_lost:
                 return None
@@ -342,7 +351,7 @@ class NislamTracker:
         every = 1 if settling else self.p.calibrate_every_n_frames
         theta_img = np.zeros(3)
         if key.layers is not None and self._frame_count % every == 0:
-            theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), self.p)
+            theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), depth.tz_m, self.p)
             if theta is not None:
                 theta_img = theta
                 self._calibrate(key, r_rel, attitude, t_att, theta)
