@@ -2,11 +2,12 @@
 
 Sections map one-to-one onto frozen dataclasses: `[replay]` -> ReplayConfig,
 `[attitude]` -> AttitudeErrorConfig, `[tracker]` -> TrackerConfig,
-`[nislam]` -> the tracker's own `NislamParams`, `[mavlink]` -> MavlinkConfig
+`[nislam]` / `[fastorb]` -> the trackers' own `NislamParams` / `FastOrbParams`,
+`[mavlink]` -> MavlinkConfig
 and `[zenoh]` -> ZenohConfig (the outputs); `[ahrs]`, `[myahrs]`,
 `[autopilot]`, `[oak]` and `[record]` -> the driver and recording sections
-(AhrsConfig ... RecordConfig). The `[nislam]` keys are read
-from that dataclass's fields, so a parameter added to the tracker is
+(AhrsConfig ... RecordConfig). The `[nislam]` and `[fastorb]` keys are read
+from those dataclasses' fields, so a parameter added to a tracker is
 configurable (and validated by its type) without touching this module.
 
 Every bad key stops the load with one `NislamError` line naming the key: an
@@ -29,6 +30,7 @@ from typing import Any, Mapping
 import tomli_w
 
 from onboard import NislamError, __version__
+from onboard.fastorb import FastOrbParams
 from onboard.nislam import NislamParams
 from onboard.trackers import TRACKER_NAMES
 
@@ -194,6 +196,7 @@ class Config:
     attitude: AttitudeErrorConfig = field(default_factory=AttitudeErrorConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     nislam: NislamParams = field(default_factory=NislamParams)
+    fastorb: FastOrbParams = field(default_factory=FastOrbParams)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     ahrs: AhrsConfig = field(default_factory=AhrsConfig)
@@ -208,6 +211,7 @@ SECTIONS: dict[str, type] = {
     "attitude": AttitudeErrorConfig,
     "tracker": TrackerConfig,
     "nislam": NislamParams,
+    "fastorb": FastOrbParams,
     "mavlink": MavlinkConfig,
     "zenoh": ZenohConfig,
     "ahrs": AhrsConfig,
@@ -341,6 +345,49 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.depth_tilt_max_rad": NON_NEGATIVE,
     "nislam.time_offset_s": ANY,
     "nislam.time_offset_max_s": NON_NEGATIVE,
+    # FastORB (onboard/fastorb.py); other ints >= 0, other floats finite
+    "fastorb.clahe_clip_limit": POSITIVE,
+    "fastorb.clahe_tiles": POSITIVE,
+    "fastorb.orb_features": POSITIVE,
+    "fastorb.orb_scale_factor": Range(lo=1.0, lo_open=True),
+    "fastorb.orb_levels": POSITIVE,
+    "fastorb.uam_accel_gain": FRACTION,
+    "fastorb.lk_win_px": Range(lo=3),
+    "fastorb.lk_max_iter": POSITIVE,
+    "fastorb.lk_eps_px": POSITIVE,
+    "fastorb.lk_max_error": POSITIVE,
+    "fastorb.lk_min_eigen": NON_NEGATIVE,
+    "fastorb.gms_grid_cols": POSITIVE,
+    "fastorb.gms_grid_rows": POSITIVE,
+    "fastorb.gms_alpha": NON_NEGATIVE,
+    "fastorb.epipolar_threshold_px": POSITIVE,
+    "fastorb.epipolar_confidence": Range(0.0, 1.0, lo_open=True, hi_open=True),
+    "fastorb.pnp_reprojection_px": POSITIVE,
+    "fastorb.pnp_iterations": POSITIVE,
+    "fastorb.pnp_confidence": Range(0.0, 1.0, lo_open=True, hi_open=True),
+    "fastorb.pnp_huber_px": NON_NEGATIVE,
+    "fastorb.pnp_sigma_gate": NON_NEGATIVE,
+    "fastorb.pnp_min_gate_px": POSITIVE,
+    "fastorb.rgbd_bf_px": NON_NEGATIVE,
+    "fastorb.rgbd_max_depth_m": POSITIVE,
+    "fastorb.landmark_max_sd_m": POSITIVE,
+    "fastorb.max_jump_m": POSITIVE,
+    "fastorb.max_jump_deg": POSITIVE,
+    "fastorb.min_depth_m": NON_NEGATIVE,
+    "fastorb.max_depth_m": POSITIVE,
+    "fastorb.depth_edge_rel": POSITIVE,
+    "fastorb.min_point_distance_px": POSITIVE,
+    "fastorb.map_track_every": POSITIVE,
+    "fastorb.map_track_radius_px": POSITIVE,
+    "fastorb.min_inliers": Range(lo=6),  # PnP needs at least 6 points
+    "fastorb.keyframe_max_frames": POSITIVE,
+    "fastorb.keyframe_inlier_ratio": FRACTION,
+    "fastorb.local_map_keyframes": POSITIVE,
+    "fastorb.max_keyframes": POSITIVE,
+    "fastorb.match_radius_px": POSITIVE,
+    "fastorb.match_max_hamming": Range(0, 256),
+    "fastorb.reloc_ratio": SHARE,
+    "fastorb.reloc_min_inliers": Range(lo=6),
     # outputs: MAVLink
     "mavlink.connect": Check(_mavlink_connect_problem),
     "mavlink.baud": POSITIVE,
@@ -407,7 +454,10 @@ RULES: dict[str, Range | Choice | Check] = {
 DEFAULT_RULES: dict[type, Range] = {int: NON_NEGATIVE, float: ANY}
 
 # Pairs that must satisfy first < second; checked only when both fields exist.
-ORDERED: tuple[tuple[str, str], ...] = (("nislam.min_depth_m", "nislam.max_depth_m"),)
+ORDERED: tuple[tuple[str, str], ...] = (
+    ("nislam.min_depth_m", "nislam.max_depth_m"),
+    ("fastorb.min_depth_m", "fastorb.max_depth_m"),
+)
 
 
 # --------------------------------------------------------------------------- loading

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Protocol
 from onboard import NislamError
 from onboard.frames import AttitudeSource, CameraIntrinsics, RgbdFrame
 from onboard.frames import KeyframeCloud, TrackResult
+from onboard.fastorb import FastOrbTracker
 from onboard.nislam import NislamTracker
 
 if TYPE_CHECKING:  # config imports TRACKER_NAMES from here
@@ -38,10 +39,9 @@ def _make_nislam(intrinsics: CameraIntrinsics, cfg: Config) -> Tracker:
 
 
 def _make_fastorb(intrinsics: CameraIntrinsics, cfg: Config) -> Tracker:
-    raise NislamError("tracker 'fastorb' is not available yet (issue 7)")
+    return FastOrbTracker(intrinsics, cfg.fastorb)
 
 
-# Listed even before it is implemented, so configs naming it validate today.
 _REGISTRY: dict[str, Callable[[CameraIntrinsics, Config], Tracker]] = {
     "nislam": _make_nislam,
     "fastorb": _make_fastorb,

@@ -154,10 +154,22 @@ def test_bad_config_key_exit_1_names_key(fixture_seq: Path, tmp_path: Path) -> N
     assert proc.stderr.strip() == f"nislam: error: {cfg}: unknown key 'nislam.grid_widht'"
 
 
-def test_unavailable_tracker_exit_1(fixture_seq: Path, tmp_path: Path) -> None:
-    proc = nislam("bench", str(fixture_seq), "--tracker", "fastorb", "--json")
+def test_unknown_tracker_exit_1(fixture_seq: Path, tmp_path: Path) -> None:
+    proc = nislam("bench", str(fixture_seq), "--tracker", "nope", "--json")
     assert proc.returncode == 1 and proc.stdout == ""
-    assert "nislam: error: tracker 'fastorb' is not available yet (issue 7)" in proc.stderr
+    assert proc.stderr.startswith("nislam: error: ") and "'nope'" in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0
+
+
+def test_fastorb_replay_tracks_the_fixture(fixture_seq: Path, tmp_path: Path) -> None:
+    """`--tracker fastorb` runs end to end: every fixture frame posed, scored."""
+    out = tmp_path / "out"
+    proc = nislam("replay", str(fixture_seq), "--tracker", "fastorb", "--out", str(out),
+                  "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames_tracked"] == metrics["frames"] > 0
+    assert metrics["ate_rmse_m"] < 0.05
 
 
 def test_replay_without_groundtruth(fixture_seq: Path, tmp_path: Path) -> None:

@@ -184,7 +184,6 @@ def test_tracker_factory() -> None:
     tracker = make_tracker("nislam", intr, Config())
     assert tracker.name == "nislam"
     assert "fastorb" in TRACKER_NAMES
-    with pytest.raises(NislamError, match=r"not available yet \(issue 7\)"):
-        make_tracker("fastorb", intr, Config())
+    assert make_tracker("fastorb", intr, Config()).name == "fastorb"
     with pytest.raises(NislamError, match="unknown tracker 'nope'"):
         make_tracker("nope", intr, Config())

@@ -1,0 +1,701 @@
+"""FastORB tracker: descriptor-free keypoint tracking on RGB-D frames (Fu, Yu,
+Wang, Yang, He, Zhang, Mian, "Fast ORB-SLAM without Keypoint Descriptors",
+IEEE TIP 2022), the tracking front end only (no local BA, no loop closure).
+
+A pure core: arrays in, a `TrackResult` out; no threads, no I/O. It needs no
+attitude sensor: `track()` takes the attitude source for the shared `Tracker`
+interface and reads it only to orient a new map (`init_from_attitude`).
+
+Per frame (Sec. III "Tracking", Sec. IV; parts in fastorb_*.py):
+  1. gray + adaptive histogram equalisation (CLAHE),
+  2. the uniform-acceleration model predicts the pose (Eqs. 14-15) and the
+     tracked points' landmarks are projected with it (Eq. 16),
+  3. pyramid Lucas-Kanade from those predictions (Algorithm 2, Eqs. 17-20),
+  4. grid motion statistics, then RANSAC on the fundamental matrix (IV-D),
+  5. landmarks of nearby key frames that came back into view are followed
+     by LK from their key frame's image (descriptor-free map tracking),
+  6. PnP + RANSAC on landmark/pixel pairs, robust refinement,
+  7. a key frame by the paper's rules (ORB with descriptors, matched to the
+     local map of nearby key frames, which also re-poses the frame); the same
+     when tracking thins out below local_map_min_inliers; below
+     redetect_min_inliers new keypoints by ORB detection alone,
+  8. no pose: lost; later frames re-localise against key frames by descriptors.
+
+Poses are kept as T_cw (world -> camera, as OpenCV and the paper). World frame:
+the first camera at the origin, oriented by the attitude source at the first
+frame when it has one (a gravity-aligned world, as NI-SLAM's), else the first
+camera's axes. Landmarks keep the world position they got from depth when
+they were made; a landmark found again keeps its id and position.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from onboard.fastorb_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
+from onboard.fastorb_match import (
+    LkSettings,
+    epipolar_inliers,
+    gms_inliers,
+    match_by_projection,
+    match_by_ratio,
+    track_lk,
+)
+from onboard.fastorb_motion import (
+    FrameClock,
+    back_project,
+    camera_in_world,
+    inverse,
+    make_pose,
+    predict_uam,
+    project,
+)
+from onboard.fastorb_pose import PnpResult, PnpSettings, solve_pnp, world_pose_variance
+from onboard.geometry import so3_log
+from onboard.frames import (
+    AttitudeSource,
+    CameraIntrinsics,
+    KeyframeCloud,
+    RgbdFrame,
+    TrackResult,
+    TrackState,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FastOrbParams:
+    """Tracker parameters; defaults are the paper's where it gives one, the
+    others measured on tum_fr1_rpy (config/default.toml has the figures)."""
+
+    # Pre-processing (Sec. III, Fig. 3)
+    clahe_clip_limit: float = 2.0
+    clahe_tiles: int = 8  # tiles per image side
+    # ORB keypoints as ORB-SLAM2: 1000 over 8 levels at scale 1.2 (Sec. IV-C)
+    orb_features: int = 1000
+    orb_scale_factor: float = 1.2
+    orb_levels: int = 8
+    orb_fast_threshold: int = 20
+    # Stage one: UAM-seeded pyramid LK (Algorithms 1-2, Eqs. 14-20)
+    use_motion_model: bool = True  # false: plain KLT from the old positions (Table I's baseline)
+    uam_accel_gain: float = 1.0  # 1: uniform acceleration (Eq. 14); 0: constant velocity
+    uam_whole_frames: bool = True  # motion model on whole frame periods, not jittery stamps
+    lk_win_px: int = 5  # omega = 2: a 5 x 5 window, k = 25 of Eq. 17
+    lk_max_level: int = 2  # 1/4 covers ORB's 1/1.2^7 = 1/3.6 (see fastorb_match.track_lk)
+    lk_max_iter: int = 10  # N_itermax of Eq. 20
+    lk_eps_px: float = 0.03  # stop when an update moves less than this [px]
+    lk_max_error: float = 20.0  # Eq. 19 window residual above this rejects a point [gray]
+    lk_min_eigen: float = 1e-4  # OpenCV minEigThreshold: weaker windows are not tracked
+    # Stage two: motion smoothness (GMS) and the epipolar constraint (Sec. IV-D)
+    gms_grid_cols: int = 16
+    gms_grid_rows: int = 12
+    gms_alpha: float = 6.0  # GMS threshold tau = alpha sqrt(n)
+    epipolar_threshold_px: float = 2.0
+    epipolar_confidence: float = 0.99
+    # Pose: PnP + RANSAC, then robust refinement
+    pnp_reprojection_px: float = 3.0  # RANSAC inlier threshold
+    pnp_iterations: int = 100
+    pnp_confidence: float = 0.99
+    pnp_huber_px: float = 1.0  # Huber-weighted Gauss-Newton [px]; 0 (and rgbd_bf_px 0): cv2.solvePnPRefineLM
+    rgbd_bf_px: float = 40.0  # disparity residual bf / z (ORB-SLAM2 TUM: 40); 0: pixels only
+    rgbd_max_depth_m: float = 3.0  # ... for points closer than this (ORB-SLAM2: 40 b = 3.1 m)
+    pnp_sigma_gate: float = 3.0  # final inliers within this many robust sigmas ...
+    pnp_min_gate_px: float = 1.5  # ... but at least this far
+    max_jump_m: float = 0.2  # a pose this far from the prediction (per frame period) ...
+    max_jump_deg: float = 15.0  # ... or turned this far from it is not believed
+    max_coast_frames: int = 3  # frames without a believed pose before lost
+    # Landmarks from depth
+    landmark_max_sd_m: float = 1e9  # no new landmarks from a pose less certain than this
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    depth_edge_rel: float = 0.05  # 4x4 depth spread above this share of the depth: no landmark
+    min_point_distance_px: float = 8.0  # new keypoints keep this far from followed ones
+    # Descriptor-free local-map tracking
+    map_track_every: int = 1  # every n-th frame
+    map_track_keyframes: int = 2  # from the n key frames nearest in view (one LK call each)
+    map_track_max: int = 400  # landmarks per frame at most
+    map_track_radius_px: float = 10.0  # LK may move a landmark this far from its projection
+    # When tracking thins out
+    local_map_min_inliers: int = 100  # below: ORB with descriptors, matched to the local map
+    redetect_min_inliers: int = 150  # below: ORB detection only (the paper: 300)
+    min_inliers: int = 30  # fewer: no pose
+    # Key frames (Sec. III)
+    keyframe_max_frames: int = 20  # a key frame at least this often ...
+    keyframe_inlier_ratio: float = 0.75  # ... or when inliers fall below this share of the last key's
+    keyframe_min_inliers: int = 100  # never from a frame with fewer inliers
+    local_map_keyframes: int = 5  # key frames nearest in view forming the local map
+    max_keyframes: int = 50  # kept for the local map and re-localisation
+    match_radius_px: float = 15.0  # local map: keypoint this close to a landmark's projection
+    match_max_hamming: int = 64  # ... and this close in descriptor
+    # Lost and re-localisation
+    reloc_keyframes: int = 4  # key frames tried per lost frame besides the two newest
+    reloc_ratio: float = 0.8  # Lowe's ratio test (no pose prior)
+    reloc_min_inliers: int = 40
+    lost_reset_frames: int = 30  # re-localisation fails this long: new map (reset_counter + 1)
+    init_from_attitude: bool = True  # orient a new map by the attitude source, if it has one
+    map_cloud_stride: int = 4  # key-frame clouds from every n-th pixel; 0: none
+
+
+@dataclass
+class _Features:
+    """ORB keypoints of the current frame; `desc` only when computed."""
+
+    uv: np.ndarray  # (N, 2) float64
+    desc: np.ndarray | None  # (N, 32) uint8
+
+
+@dataclass
+class _Tracked:
+    """Points followed from frame to frame: pixel in the last frame, and the
+    landmark each observes (id and world position, fixed at its creation)."""
+
+    uv: np.ndarray  # (N, 2) float32
+    xyz_W: np.ndarray  # (N, 3)
+    ids: np.ndarray  # (N,) int64
+
+    @classmethod
+    def empty(cls) -> "_Tracked":
+        return cls(np.zeros((0, 2), np.float32), np.zeros((0, 3)), np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    def subset(self, sel: np.ndarray) -> "_Tracked":
+        return _Tracked(self.uv[sel], self.xyz_W[sel], self.ids[sel])
+
+    def extended(self, other: "_Tracked") -> "_Tracked":
+        return _Tracked(
+            np.concatenate([self.uv, other.uv.astype(np.float32)]),
+            np.concatenate([self.xyz_W, other.xyz_W]),
+            np.concatenate([self.ids, other.ids]),
+        )
+
+
+@dataclass
+class _Outcome:
+    """A posed frame: pose, the tracked set for the next frame (PnP inliers
+    and new points), the PnP fit, and the frame's keypoints if detected."""
+
+    T_cw: np.ndarray
+    tracked: _Tracked
+    pnp: PnpResult
+    features: _Features | None
+
+    @property
+    def inliers(self) -> int:
+        return int(self.pnp.inliers.sum())
+
+
+class FastOrbTracker:
+    """FastORB tracking front end (one instance per camera)."""
+
+    name = "fastorb"
+
+    def __init__(self, intrinsics: CameraIntrinsics, params: FastOrbParams = FastOrbParams()):
+        p = params
+        self.intr = intrinsics
+        self.p = p
+        self.K = np.array(
+            [[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0, 0, 1.0]]
+        )
+        self._size = (intrinsics.width, intrinsics.height)
+        self._clahe = cv2.createCLAHE(p.clahe_clip_limit, (p.clahe_tiles, p.clahe_tiles))
+        self._orb = cv2.ORB_create(
+            nfeatures=p.orb_features, scaleFactor=p.orb_scale_factor, nlevels=p.orb_levels,
+            fastThreshold=p.orb_fast_threshold,
+        )
+        self._lk = LkSettings(p.lk_win_px, p.lk_max_level, p.lk_max_iter, p.lk_eps_px,
+                              p.lk_max_error, p.lk_min_eigen)
+        self._pnp = PnpSettings(p.pnp_reprojection_px, p.pnp_iterations, p.pnp_confidence,
+                                huber_px=p.pnp_huber_px, sigma_gate=p.pnp_sigma_gate,
+                                min_gate_px=p.pnp_min_gate_px, bf_px=p.rgbd_bf_px)
+        self._map = LocalMap(p.max_keyframes, p.local_map_keyframes)
+        self._state = TrackState.INITIALIZING
+        self._tracked = _Tracked.empty()
+        self._prev_gray: np.ndarray | None = None
+        self._history: deque[tuple[float, np.ndarray]] = deque(maxlen=3)  # (motion time, T_cw)
+        self._clock = FrameClock()
+        self._t_motion = 0.0  # the current frame's time for the motion model
+        self._last_T_cw: np.ndarray | None = None
+        self._unfinished: Keyframe | None = None  # newest key, cloud not handed over yet
+        self._next_keyframe_id = 0
+        self._next_landmark_id = 0
+        self._frames_since_keyframe = 0
+        self._frames_since_map = 0
+        self._keyframe_inliers = 0
+        self._lost_frames = 0
+        self._coasted = 0
+        self._reloc_cursor = 0
+        self._reset_counter = 0
+
+    # ------------------------------------------------------------------ API
+    def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
+        """Track one frame (the attitude is read only to orient a new map)."""
+        gray = self._clahe.apply(cv2.cvtColor(frame.bgr, cv2.COLOR_BGR2GRAY))  # step 1
+        t_clock = self._clock(frame.t_s)
+        self._t_motion = t_clock if self.p.uam_whole_frames else frame.t_s
+        try:
+            if self._state is TrackState.INITIALIZING:
+                return self._initialise(frame, gray, self._initial_pose(frame.t_s, attitude))
+            if self._state is TrackState.LOST:
+                return self._relocalise(frame, gray, attitude)
+            return self._track(frame, gray)
+        finally:
+            self._prev_gray = gray
+
+    def finish(self) -> KeyframeCloud | None:
+        """End of a run: the newest key frame's cloud."""
+        return self._take_cloud()
+
+    # ------------------------------------------------------------- tracking
+    def _track(self, frame: RgbdFrame, gray: np.ndarray) -> TrackResult:
+        prior = predict_uam(*zip(*self._history), self._t_motion,
+                            self.p.uam_accel_gain)  # step 2, Eqs. 14-15
+        moved = self._track_frame_to_frame(gray, prior)  # steps 2-4
+        self._frames_since_keyframe += 1
+        self._frames_since_map += 1
+        if self._frames_since_map >= self.p.map_track_every:  # step 5
+            moved = moved.extended(self._track_map_points(gray, prior, moved))
+        outcome = self._pose(moved, prior, frame.depth_m)  # step 6
+        n_in = 0 if outcome is None else outcome.inliers
+        if n_in < self.p.local_map_min_inliers or self._keyframe_due(n_in):  # step 7
+            guess = prior if outcome is None else outcome.T_cw
+            kept = _Tracked.empty() if outcome is None else outcome.tracked
+            found = self._track_local_map(frame, gray, guess, kept)
+            if found is not None and self._plausible(found.T_cw, prior):
+                outcome = found
+        if outcome is None:
+            log.debug("t=%.3f: no pose from %d followed points", frame.t_s, len(moved))
+            return self._coast_or_lose(frame.t_s, prior, moved)
+        self._coasted = 0
+        firm = self._firm(outcome)
+        new_key = (firm and outcome.features is not None
+                   and outcome.inliers >= self.p.keyframe_min_inliers)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("t=%.3f: %d followed, %d inliers (rms %.2f px), %.1f mm from the "
+                      "prediction%s", frame.t_s, len(moved), outcome.inliers, outcome.pnp.rms_px,
+                      1e3 * np.linalg.norm(camera_in_world(outcome.T_cw)[0]
+                                           - camera_in_world(prior)[0]),
+                      ", key frame" if new_key else (
+                          ", local map" if outcome.features is not None else ""))
+        finished: tuple[KeyframeCloud, ...] = ()
+        if new_key:
+            finished = self._make_keyframe(frame, gray, outcome)
+        elif firm and outcome.inliers < self.p.redetect_min_inliers:
+            outcome.tracked = self._replenish(frame, gray, outcome.T_cw, outcome.tracked)
+        return self._tracked_result(frame.t_s, outcome, new_key, finished)
+
+    def _firm(self, outcome: _Outcome) -> bool:
+        """Whether the pose is firm enough to place new landmarks with: its
+        position standard deviation (from the PnP covariance) at most
+        landmark_max_sd_m. A blurred frame's few tracks give a pose that is
+        fine to report but would carry its error into every landmark made
+        from it, and from there into every later pose."""
+        var = np.diag(outcome.pnp.cov)[3:]
+        return bool(np.all(np.isfinite(var)) and np.sqrt(var.max()) <= self.p.landmark_max_sd_m)
+
+    def _pose(self, moved: _Tracked, prior: np.ndarray, depth_m: np.ndarray) -> _Outcome | None:
+        """PnP + RANSAC and refinement on the followed points; None without a
+        fit or when the pose jumps implausibly far from the prediction (e.g.
+        tracks dragged along by motion blur)."""
+        pnp = self._solve(moved.xyz_W, moved.uv, depth_m)
+        if pnp is None or not self._plausible(pnp.T_cw, prior):
+            log.debug("no pose from %d points: %s", len(moved),
+                      "PnP failed" if pnp is None else "implausible jump")
+            return None
+        return _Outcome(pnp.T_cw, moved.subset(pnp.inliers), _restrict(pnp), None)
+
+    def _plausible(self, T_cw: np.ndarray, prior: np.ndarray) -> bool:
+        """Whether a pose stays within max_jump_m / max_jump_deg of the motion
+        model's prediction (scaled by the square of the frame steps since the
+        last pose). Checked only once the model has three poses to go on."""
+        if len(self._history) < 3:
+            return True
+        steps = max((self._t_motion - self._history[-1][0]) / self._clock.period, 1.0)
+        d = T_cw @ inverse(prior)
+        angle_deg = float(np.degrees(np.linalg.norm(so3_log(d[:3, :3]))))
+        shift_m = float(np.linalg.norm(camera_in_world(T_cw)[0] - camera_in_world(prior)[0]))
+        return shift_m <= self.p.max_jump_m * steps**2 and angle_deg <= self.p.max_jump_deg * steps**2
+
+    def _coast_or_lose(self, t_s: float, prior: np.ndarray, moved: _Tracked) -> TrackResult:
+        """No trustworthy pose: for up to max_coast_frames frames keep the
+        points LK followed and let the motion model carry the pose (not
+        reported), then give up (lost)."""
+        if self._coasted >= self.p.max_coast_frames or len(moved) < self.p.min_inliers:
+            return self._lose(t_s, "too few inliers")
+        self._coasted += 1
+        self._tracked = moved
+        self._history.append((self._t_motion, prior))
+        return self._unposed(t_s, TrackState.TRACKING, "no pose this frame")
+
+    def _track_frame_to_frame(self, gray: np.ndarray, prior: np.ndarray) -> _Tracked:
+        """Stages one and two (steps 2-4): the tracked points that LK followed
+        from the last frame and that pass the motion-smoothness and epipolar
+        checks, at their new pixels."""
+        trk = self._tracked
+        if len(trk) < self.p.min_inliers or self._prev_gray is None:
+            return _Tracked.empty()
+        guess = self._seed(trk, prior) if self.p.use_motion_model else None  # Eq. 16
+        uv, ok = track_lk(self._prev_gray, gray, trk.uv, guess, self._lk)  # Eqs. 17-20
+        idx = np.flatnonzero(ok)
+        idx = idx[gms_inliers(trk.uv[idx], uv[idx], self._size,
+                              (self.p.gms_grid_cols, self.p.gms_grid_rows), self.p.gms_alpha)]
+        idx = idx[epipolar_inliers(trk.uv[idx], uv[idx], self.p.epipolar_threshold_px,
+                                   self.p.epipolar_confidence)]
+        return _Tracked(uv[idx], trk.xyz_W[idx], trk.ids[idx])
+
+    def _solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray) -> PnpResult | None:
+        """PnP + RANSAC, then refinement against the landmarks
+        with this frame's depth at the tracked pixels (closer than
+        rgbd_max_depth_m) as disparity residuals."""
+        z = sample_depth(depth_m, uv, self.p.min_depth_m, self.p.rgbd_max_depth_m,
+                         self.p.depth_edge_rel) if len(uv) else np.zeros(0)
+        return solve_pnp(xyz_W, uv, self.K, self._pnp, self.p.min_inliers, z)
+
+    def _seed(self, trk: _Tracked, prior: np.ndarray) -> np.ndarray:
+        """Eq. 16: predicted pixels; points behind the camera keep their old pixel."""
+        uv, z = project(self.K, prior, trk.xyz_W)
+        return np.where((z > 1e-3)[:, None], uv, trk.uv).astype(np.float32)
+
+    def _track_local_map(
+        self,
+        frame: RgbdFrame,
+        gray: np.ndarray,
+        guess: np.ndarray,
+        kept: _Tracked,
+        feats: _Features | None = None,
+    ) -> _Outcome | None:
+        """Track against the local map: ORB with descriptors on this frame,
+        matched to the landmarks of the key frames nearest to the pose `guess`
+        (projected with it); PnP on those and the still-tracked points. A
+        tracked point that meets an older landmark takes it over, so drift
+        does not outlive the return to a mapped view."""
+        if feats is None:
+            feats = self._detect(gray, with_descriptors=True)
+        found = self._match_map(feats, guess)
+        near = self._pair_with(kept.uv, found.uv, 2.0)  # kept index per found point, -1: none
+        older = near >= 0
+        older[older] = found.ids[older] < kept.ids[near[older]]
+        kept = _Tracked(kept.uv, kept.xyz_W.copy(), kept.ids.copy())
+        kept.xyz_W[near[older]] = found.xyz_W[older]
+        kept.ids[near[older]] = found.ids[older]
+        new = (near < 0) & ~np.isin(found.ids, kept.ids)
+        both = kept.extended(found.subset(new))
+        pnp = self._solve(both.xyz_W, both.uv, frame.depth_m)
+        if pnp is None:
+            return None
+        return _Outcome(pnp.T_cw, both.subset(pnp.inliers), _restrict(pnp), feats)
+
+    def _track_map_points(self, gray: np.ndarray, prior: np.ndarray, moved: _Tracked) -> _Tracked:
+        """Descriptor-free local-map tracking: landmarks of the key frames
+        nearest to the predicted pose that project into this frame away from
+        the followed points, followed by LK from their key frame's image,
+        starting at the projection. Landmarks that left the view and came
+        back are re-acquired with their old position, which holds drift back."""
+        self._frames_since_map = 0
+        mp = self._map.points_near(prior)
+        mp = mp.subset(~np.isin(mp.ids, moved.ids) & (mp.kf < self.p.map_track_keyframes))
+        uv, z = project(self.K, prior, mp.xyz_W)
+        w, h = self._size
+        m = 8  # keep the LK window and its pyramid footprint inside the image
+        view = ((z > self.p.min_depth_m) & (uv[:, 0] >= m) & (uv[:, 0] < w - m)
+                & (uv[:, 1] >= m) & (uv[:, 1] < h - m))
+        sel = np.flatnonzero(view)
+        sel = sel[self._free(moved.uv, uv[sel])][: self.p.map_track_max]
+        found = _Tracked.empty()
+        for slot in np.unique(mp.kf[sel]):
+            g = sel[mp.kf[sel] == slot]
+            at, ok = track_lk(mp.keyframes[slot].gray, gray, mp.uv[g], uv[g], self._lk)
+            ok &= np.sum((at - uv[g]) ** 2, axis=1) <= self.p.map_track_radius_px**2
+            found = found.extended(_Tracked(at[ok], mp.xyz_W[g[ok]], mp.ids[g[ok]]))
+        return found
+
+    def _match_map(self, feats: _Features, guess: np.ndarray) -> _Tracked:
+        """Keypoints matched to local-map landmarks by projection and descriptor."""
+        mp = self._map.points_near(guess)
+        uv_map, z_map = project(self.K, guess, mp.xyz_W)
+        w, h = self._size
+        view = np.flatnonzero((z_map > self.p.min_depth_m) & (uv_map[:, 0] >= 0)
+                              & (uv_map[:, 0] < w) & (uv_map[:, 1] >= 0) & (uv_map[:, 1] < h))
+        kp_i, map_i = match_by_projection(
+            feats.desc, feats.uv, mp.desc[view], uv_map[view], self.p.match_radius_px,
+            self.p.match_max_hamming,
+        )
+        map_i = view[map_i]
+        return _Tracked(feats.uv[kp_i].astype(np.float32), mp.xyz_W[map_i], mp.ids[map_i])
+
+    def _replenish(
+        self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: _Tracked
+    ) -> _Tracked:
+        """Fewer than redetect_min_inliers: ORB detection only (no descriptors)
+        where no tracked point is, new landmarks from depth."""
+        feats = self._detect(gray, with_descriptors=False, avoid=tracked.uv)
+        new, _ = self._landmarks(frame, T_cw, feats.uv[self._free(tracked.uv, feats.uv)])
+        room = max(self.p.orb_features - len(tracked), 0)
+        return tracked.extended(new.subset(slice(0, room)))
+
+    def _landmarks(
+        self, frame: RgbdFrame, T_cw: np.ndarray, uv: np.ndarray
+    ) -> tuple[_Tracked, np.ndarray]:
+        """New landmarks (fresh ids) for those pixels `uv` that have usable
+        depth, and which those were (bool (N,))."""
+        z = sample_depth(frame.depth_m, uv, self.p.min_depth_m, self.p.max_depth_m,
+                         self.p.depth_edge_rel)
+        ok = z > 0
+        n = int(ok.sum())
+        ids = np.arange(self._next_landmark_id, self._next_landmark_id + n, dtype=np.int64)
+        self._next_landmark_id += n
+        xyz = back_project(self.K, T_cw, uv[ok], z[ok])
+        return _Tracked(uv[ok].astype(np.float32), xyz, ids), ok
+
+    # ------------------------------------------------------------ key frames
+    def _keyframe_due(self, n_inliers: int) -> bool:
+        """Sec. III: a key frame once over keyframe_max_frames frames have passed
+        since the last, or tracking has dropped below keyframe_inlier_ratio of
+        the last key's inliers (ORB-SLAM2's rule; the paper's third trigger,
+        an idle local-mapping thread, has no counterpart without a back end);
+        never with fewer than keyframe_min_inliers tracked inliers."""
+        if n_inliers < self.p.keyframe_min_inliers:
+            return False
+        return (self._frames_since_keyframe >= self.p.keyframe_max_frames
+                or n_inliers < self.p.keyframe_inlier_ratio * self._keyframe_inliers)
+
+    def _make_keyframe(
+        self, frame: RgbdFrame, gray: np.ndarray, outcome: _Outcome
+    ) -> tuple[KeyframeCloud, ...]:
+        """The posed frame with descriptors becomes a key frame (step 7). A
+        keypoint on a tracked point takes its landmark, the others get new
+        ones from depth; those away from tracked points join the tracked set."""
+        feats = outcome.features
+        assert feats is not None and feats.desc is not None
+        tracked = outcome.tracked
+        on = self._pair_with(tracked.uv, feats.uv, 1.5)
+        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0])
+        kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on < 0)[has_depth]])
+        kf_pts = tracked.subset(on[on >= 0]).extended(fresh)
+        free = self._free(tracked.uv, fresh.uv)
+        room = max(self.p.orb_features - len(tracked), 0)
+        outcome.tracked = tracked.extended(fresh.subset(np.flatnonzero(free)[:room]))
+        finished = self._take_cloud()
+        kf = Keyframe(self._next_keyframe_id, frame.t_s, outcome.T_cw.copy(), gray,
+                      kf_pts.uv.astype(np.float64), feats.desc[kf_idx], kf_pts.xyz_W, kf_pts.ids,
+                      frame.bgr, frame.depth_m)
+        self._next_keyframe_id += 1
+        self._map.add(kf)
+        self._unfinished = kf
+        self._frames_since_keyframe = 0
+        self._keyframe_inliers = outcome.inliers
+        return () if finished is None else (finished,)
+
+    def _take_cloud(self) -> KeyframeCloud | None:
+        kf, self._unfinished = self._unfinished, None
+        if kf is None or self.p.map_cloud_stride <= 0:
+            return None
+        return keyframe_cloud(kf, self.K, self.p.map_cloud_stride, self.p.min_depth_m,
+                              self.p.max_depth_m)
+
+    # ------------------------------------------------- start, lost, re-localise
+    def _initial_pose(self, t_s: float, attitude: AttitudeSource | None) -> np.ndarray:
+        """T_cw of a new map: at the last trusted position (origin at start),
+        oriented by the attitude source if it has a reading, else as before."""
+        if self._last_T_cw is None:
+            p_W, R_W_C = np.zeros(3), np.eye(3)
+        else:
+            p_W, R_W_C = camera_in_world(self._last_T_cw)
+        if self.p.init_from_attitude and attitude is not None:
+            r = attitude.rotation_at(t_s)
+            if r is not None and np.all(np.isfinite(r)):
+                R_W_C = np.asarray(r, np.float64)
+        return make_pose(R_W_C.T, -R_W_C.T @ p_W)
+
+    def _initialise(self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray) -> TrackResult:
+        """A new map: this frame is the first key frame, at pose T_cw."""
+        feats = self._detect(gray, with_descriptors=True)
+        first, _ = self._landmarks(frame, T_cw, feats.uv)
+        if len(first) < self.p.keyframe_min_inliers:
+            return self._unposed(frame.t_s, TrackState.INITIALIZING, "too few keypoints with depth")
+        self._map.clear()
+        pnp = PnpResult(T_cw, np.ones(len(first), bool), 0.0, np.diag([1e-8] * 6))
+        outcome = _Outcome(T_cw, first, pnp, feats)
+        finished = self._make_keyframe(frame, gray, outcome)
+        self._state = TrackState.TRACKING
+        return self._tracked_result(frame.t_s, outcome, True, finished, history_reset=True)
+
+    def _lose(self, t_s: float, reason: str) -> TrackResult:
+        self._state = TrackState.LOST
+        self._lost_frames = 1
+        self._reloc_cursor = 0
+        self._tracked = _Tracked.empty()
+        self._history.clear()
+        return self._unposed(t_s, TrackState.LOST, reason)
+
+    def _relocalise(
+        self, frame: RgbdFrame, gray: np.ndarray, attitude: AttitudeSource
+    ) -> TrackResult:
+        """Step 8: match this frame's descriptors against the newest key frames
+        (no pose prior: ratio test, AP3P RANSAC), then against the local map
+        around the pose found. Success re-enters the map with a jump, so
+        reset_counter counts it; lost_reset_frames failures in a row start a
+        new map at the last trusted pose."""
+        feats = self._detect(gray, with_descriptors=True)
+        for kf in self._reloc_candidates():
+            q, t = match_by_ratio(feats.desc, kf.desc, self.p.reloc_ratio, self.p.match_max_hamming)
+            pnp = solve_pnp(kf.xyz_W[t], feats.uv[q], self.K, self._pnp,
+                            self.p.reloc_min_inliers)
+            if pnp is None:
+                continue
+            found = _Tracked(feats.uv[q].astype(np.float32), kf.xyz_W[t], kf.ids[t])
+            outcome = self._track_local_map(frame, gray, pnp.T_cw, found.subset(pnp.inliers),
+                                            feats)
+            if outcome is None or outcome.inliers < self.p.reloc_min_inliers:
+                continue
+            self._reset_counter += 1
+            self._state = TrackState.TRACKING
+            self._lost_frames = 0
+            finished = self._make_keyframe(frame, gray, outcome)
+            return self._tracked_result(frame.t_s, outcome, True, finished, history_reset=True)
+        self._lost_frames += 1
+        if self._lost_frames > self.p.lost_reset_frames:
+            self._reset_counter += 1
+            return self._initialise(frame, gray, self._initial_pose(frame.t_s, attitude))
+        return self._unposed(frame.t_s, TrackState.LOST, "re-localisation failed")
+
+    def _reloc_candidates(self) -> list:
+        """Key frames to try this lost frame: the two newest, then the next
+        reloc_keyframes of all kept ones in turn (newest to oldest, wrapping),
+        so a long loss works through the whole map a few at a time. Key frames
+        made just before a loss are often blurred and useless."""
+        kfs = self._map.newest_first(len(self._map))
+        rest = kfs[2:]
+        if not rest:
+            return kfs
+        n = min(self.p.reloc_keyframes, len(rest))
+        start = self._reloc_cursor % len(rest)
+        self._reloc_cursor = start + n
+        return kfs[:2] + [rest[(start + i) % len(rest)] for i in range(n)]
+
+    # ---------------------------------------------------------------- helpers
+    def _detect(
+        self, gray: np.ndarray, with_descriptors: bool, avoid: np.ndarray | None = None
+    ) -> _Features:
+        """ORB keypoints (ORB.detect only, or detectAndCompute for key frames),
+        optionally masked away from the pixels `avoid`."""
+        mask = None if avoid is None or len(avoid) == 0 else self._free_mask(avoid)
+        if with_descriptors:
+            kps, desc = self._orb.detectAndCompute(gray, mask)
+            if desc is None:
+                desc = np.zeros((0, 32), np.uint8)
+        else:
+            kps, desc = self._orb.detect(gray, mask), None
+        uv = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
+        return _Features(uv, desc)
+
+    def _occupancy(self, uv: np.ndarray) -> tuple[np.ndarray, int]:
+        """Cells of min_point_distance_px with a point in them or a neighbour."""
+        cell = max(int(self.p.min_point_distance_px), 1)
+        w, h = self._size
+        occ = np.zeros((h // cell + 1, w // cell + 1), np.uint8)
+        if len(uv):
+            c = np.clip((uv // cell).astype(np.int64), 0, [occ.shape[1] - 1, occ.shape[0] - 1])
+            occ[c[:, 1], c[:, 0]] = 1
+            occ = cv2.dilate(occ, np.ones((3, 3), np.uint8))
+        return occ, cell
+
+    @staticmethod
+    def _pair_with(taken: np.ndarray, uv: np.ndarray, radius_px: float) -> np.ndarray:
+        """For each of `uv`, the index of the nearest of `taken` within
+        `radius_px`, or -1."""
+        if len(taken) == 0 or len(uv) == 0:
+            return np.full(len(uv), -1, np.int64)
+        dist, j = cKDTree(taken).query(uv, distance_upper_bound=radius_px)
+        return np.where(np.isfinite(dist), j, -1).astype(np.int64)
+
+    def _free(self, taken: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Which of `uv` lie away (about min_point_distance_px) from `taken`."""
+        occ, cell = self._occupancy(taken)
+        c = np.clip((uv // cell).astype(np.int64), 0, [occ.shape[1] - 1, occ.shape[0] - 1])
+        return occ[c[:, 1], c[:, 0]] == 0
+
+    def _free_mask(self, taken: np.ndarray) -> np.ndarray:
+        occ, cell = self._occupancy(taken)
+        w, h = self._size
+        full = np.repeat(np.repeat(occ, cell, axis=0), cell, axis=1)[:h, :w]
+        return np.where(full > 0, 0, 255).astype(np.uint8)
+
+    # ---------------------------------------------------------------- results
+    def _tracked_result(
+        self,
+        t_s: float,
+        outcome: _Outcome,
+        new_key: bool,
+        finished: tuple[KeyframeCloud, ...],
+        history_reset: bool = False,
+    ) -> TrackResult:
+        self._tracked = outcome.tracked
+        self._last_T_cw = outcome.T_cw
+        if history_reset:
+            self._history.clear()
+        self._history.append((self._t_motion, outcome.T_cw))
+        return self._result(t_s, TrackState.TRACKING, outcome, None, new_key, finished)
+
+    def _unposed(self, t_s: float, state: TrackState, reason: str) -> TrackResult:
+        return self._result(t_s, state, None, reason, False, ())
+
+    def _result(
+        self,
+        t_s: float,
+        state: TrackState,
+        outcome: _Outcome | None,
+        reason: str | None,
+        new_key: bool,
+        finished: tuple[KeyframeCloud, ...],
+    ) -> TrackResult:
+        """The shared result: a pose (trusted) with `outcome`, else none."""
+        kf = self._map.newest
+        if outcome is None:
+            p_W = R_W_C = None
+            pose_var, quality, n_in = np.full(6, np.nan), 0, 0
+        else:
+            p_W, R_W_C = camera_in_world(outcome.T_cw)
+            pose_var = world_pose_variance(outcome.T_cw, outcome.pnp.cov)
+            n_in = outcome.inliers
+            quality = self._quality(n_in, outcome.pnp.rms_px)
+        return TrackResult(
+            t_s=t_s,
+            state=state,
+            trusted=outcome is not None,
+            p_W_m=p_W,
+            R_W_C=R_W_C,
+            pose_var=pose_var,
+            quality=quality,
+            psr=float("nan"),  # no correlation peak in this tracker
+            keyframe_id=-1 if kf is None else kf.keyframe_id,
+            new_keyframe=new_key,
+            reset_counter=self._reset_counter,
+            lost_reason=reason,
+            shift_cells=(0.0, 0.0),
+            tz_m=0.0,
+            res_m=0.0,
+            rotation_residual_rad=np.zeros(3),
+            attitude_offset_s=0.0,
+            matched_cells=n_in,  # PnP inliers
+            finished_keyframes=finished,
+        )
+
+    def _quality(self, n_inliers: int, rms_px: float) -> int:
+        """100 at redetect_min_inliers inliers and sub-pixel residuals; falls
+        with fewer inliers and with the reprojection RMS beyond 1 px."""
+        share = min(n_inliers / max(self.p.redetect_min_inliers, 1), 1.0)
+        return int(np.clip(round(100.0 * share / max(rms_px, 1.0)), 1, 100))
+
+
+def _restrict(pnp: PnpResult) -> PnpResult:
+    """The PnP result over its own inliers only (the tracked set keeps those)."""
+    return PnpResult(pnp.T_cw, np.ones(int(pnp.inliers.sum()), bool), pnp.rms_px, pnp.cov)

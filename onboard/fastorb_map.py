@@ -1,0 +1,197 @@
+"""FastORB key frames: landmarks from depth, descriptors, the local map of
+recent key frames, and the key frames' clouds for the dense map."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.fastorb_motion import camera_in_world
+from onboard.frames import KeyframeCloud
+
+
+def sample_depth(
+    depth_m: np.ndarray,
+    uv: np.ndarray,
+    min_depth_m: float,
+    max_depth_m: float,
+    edge_rel: float,
+) -> np.ndarray:
+    """Depth (N,) at the sub-pixel positions `uv`, bilinear between the four
+    pixel centres around each (on a slanted floor the nearest pixel's depth
+    is off by up to half a pixel's worth of slope); 0 where unusable: out of
+    range, or on a depth edge (the 4 x 4 pixels around it span more than
+    `edge_rel` of the depth), where a corner's depth belongs to either surface."""
+    h, w = depth_m.shape
+    x = np.clip(uv[:, 0], 1.0, w - 3.0)
+    y = np.clip(uv[:, 1], 1.0, h - 3.0)
+    u0, v0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - u0, y - v0
+    win = np.stack(
+        [depth_m[v0 + dy, u0 + dx] for dy in (-1, 0, 1, 2) for dx in (-1, 0, 1, 2)], axis=1
+    ).astype(np.float64)
+    z00, z01, z10, z11 = win[:, 5], win[:, 6], win[:, 9], win[:, 10]
+    z = (z00 * (1 - fx) + z01 * fx) * (1 - fy) + (z10 * (1 - fx) + z11 * fx) * fy
+    lo, hi = win.min(axis=1), win.max(axis=1)
+    ok = (z > min_depth_m) & (z < max_depth_m) & (lo > 0) & (hi - lo <= edge_rel * z)
+    return np.where(ok, z, 0.0)
+
+
+@dataclass
+class Keyframe:
+    """A key frame: pose, equalised image, keypoints with ORB descriptors and
+    their landmarks. `uv` is where each landmark sits in this image (a
+    tracked point's own pixel when the keypoint took over its landmark), so
+    LK from here lands on the landmark. `bgr` / `depth_m` are kept only until
+    its cloud has been handed over."""
+
+    keyframe_id: int
+    t_s: float
+    T_cw: np.ndarray
+    gray: np.ndarray  # (H, W) uint8, equalised as the tracker sees it
+    uv: np.ndarray  # (N, 2) landmark pixels in this key frame
+    desc: np.ndarray  # (N, 32) uint8 ORB descriptors
+    xyz_W: np.ndarray  # (N, 3) landmarks in the world
+    ids: np.ndarray  # (N,) landmark ids: the same physical point keeps its id and position
+    bgr: np.ndarray | None
+    depth_m: np.ndarray | None
+
+    def __post_init__(self) -> None:
+        self.centre_W = camera_in_world(self.T_cw)[0]
+        self.axis_W = self.T_cw[2, :3].copy()  # optical axis in the world: row 3 of R_cw
+
+
+@dataclass(frozen=True)
+class MapPoints:
+    """Landmarks of some key frames, one row per landmark id, each with its
+    descriptor and pixel in the key frame `kf` (an index into `keyframes`)."""
+
+    keyframes: tuple[Keyframe, ...]
+    ids: np.ndarray  # (M,) int64
+    xyz_W: np.ndarray  # (M, 3)
+    desc: np.ndarray  # (M, 32) uint8
+    uv: np.ndarray  # (M, 2)
+    kf: np.ndarray  # (M,) int64
+
+    @classmethod
+    def empty(cls) -> "MapPoints":
+        return cls((), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 32), np.uint8),
+                   np.zeros((0, 2)), np.zeros(0, np.int64))
+
+    def subset(self, sel: np.ndarray) -> "MapPoints":
+        return MapPoints(self.keyframes, self.ids[sel], self.xyz_W[sel], self.desc[sel],
+                         self.uv[sel], self.kf[sel])
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+class LocalMap:
+    """The key frames kept for re-localisation (newest last). The local map
+    that tracking matches against is the landmarks of the `local` key frames
+    looking most like the current view (optical axes within
+    `max_view_angle_deg`, nearest first), so a view seen minutes ago is found
+    again as long as its key frame is kept."""
+
+    def __init__(self, max_keyframes: int, local: int, max_view_angle_deg: float = 60.0):
+        self._kfs: deque[Keyframe] = deque(maxlen=max(max_keyframes, local, 1))
+        self._local = local
+        self._cos_max = float(np.cos(np.radians(max_view_angle_deg)))
+        self._cached: tuple[tuple[int, ...], MapPoints] = ((), MapPoints.empty())
+
+    def __len__(self) -> int:
+        return len(self._kfs)
+
+    @property
+    def newest(self) -> Keyframe | None:
+        return self._kfs[-1] if self._kfs else None
+
+    def add(self, kf: Keyframe) -> None:
+        self._kfs.append(kf)
+
+    def clear(self) -> None:
+        self._kfs.clear()
+        self._cached = ((), MapPoints.empty())
+
+    def newest_first(self, n: int) -> list[Keyframe]:
+        return list(self._kfs)[::-1][:n]
+
+    def nearest(self, T_cw: np.ndarray, n: int) -> list[Keyframe]:
+        """Up to `n` key frames by view similarity to the pose T_cw: optical
+        axes within the angle limit, ranked by angle plus 1 rad per metre of
+        camera distance."""
+        if not self._kfs:
+            return []
+        axis = T_cw[2, :3]  # optical axis in the world: row 3 of R_cw
+        centre = camera_in_world(T_cw)[0]
+        cosines = np.array([k.axis_W for k in self._kfs]) @ axis
+        dists = np.linalg.norm(np.array([k.centre_W for k in self._kfs]) - centre, axis=1)
+        score = np.arccos(np.clip(cosines, -1.0, 1.0)) + dists
+        order = [i for i in np.argsort(score) if cosines[i] >= self._cos_max][:n]
+        kfs = list(self._kfs)
+        return [kfs[i] for i in order]
+
+    def points_near(self, T_cw: np.ndarray) -> MapPoints:
+        """The landmarks of the key frames nearest to T_cw, each id once, seen
+        from the nearest key frame that has it."""
+        kfs = tuple(self.nearest(T_cw, self._local))
+        key = tuple(k.keyframe_id for k in kfs)
+        if key != self._cached[0]:  # the same key frames frame after frame, mostly
+            self._cached = (key, _gather(kfs))
+        return self._cached[1]
+
+
+def _gather(kfs: tuple[Keyframe, ...]) -> MapPoints:
+    """The landmarks of `kfs`, each id once, from the first key frame that has it."""
+    if not kfs:
+        return MapPoints.empty()
+    ids = np.concatenate([k.ids for k in kfs])
+    _, first = np.unique(ids, return_index=True)
+    return MapPoints(
+        kfs,
+        ids[first],
+        np.concatenate([k.xyz_W for k in kfs])[first],
+        np.concatenate([k.desc for k in kfs])[first],
+        np.concatenate([k.uv for k in kfs])[first],
+        np.concatenate([np.full(len(k.ids), i) for i, k in enumerate(kfs)])[first],
+    )
+
+
+def keyframe_cloud(
+    kf: Keyframe, K: np.ndarray, stride: int, min_depth_m: float, max_depth_m: float
+) -> KeyframeCloud | None:
+    """The key frame's depth as a `KeyframeCloud` (the NI-SLAM key-image form:
+    an axonometric grid in key axes, nearest point per cell), so the replay's
+    map writer takes FastORB keys unchanged. Every `stride`-th pixel; the grid
+    has the sampled image's size and a resolution that holds 95 % of the
+    points. Drops the key frame's images afterwards."""
+    bgr, depth = kf.bgr, kf.depth_m
+    kf.bgr = kf.depth_m = None
+    if bgr is None or depth is None:
+        return None
+    z = depth[::stride, ::stride].astype(np.float64)
+    h, w = z.shape
+    vv, uu = np.nonzero((z > min_depth_m) & (z < max_depth_m))
+    if len(vv) < 10:
+        return None
+    zz = z[vv, uu]
+    x = (uu * stride - K[0, 2]) / K[0, 0] * zz
+    y = (vv * stride - K[1, 2]) / K[1, 1] * zz
+    res = max(np.quantile(np.abs(x), 0.95) / (w // 2), np.quantile(np.abs(y), 0.95) / (h // 2), 1e-3)
+    cu = np.floor(x / res + w // 2).astype(np.int64)
+    cv = np.floor(y / res + h // 2).astype(np.int64)
+    ok = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    cell = (cv * w + cu)[ok]
+    order = np.lexsort((zz[ok], cell))  # by cell, nearest first
+    first = np.unique(cell[order], return_index=True)[1]
+    pick = np.flatnonzero(ok)[order[first]]
+    grid_depth = np.zeros((h, w), np.float32)
+    grid_bgr = np.zeros((h, w, 3), np.uint8)
+    grid_depth.flat[cell[order[first]]] = zz[pick]
+    colours = bgr[::stride, ::stride][vv[pick], uu[pick]]
+    grid_bgr.reshape(-1, 3)[cell[order[first]]] = colours
+    gray = grid_bgr.astype(np.float32).mean(axis=2) / 255.0
+    p_W, R_W_C = camera_in_world(kf.T_cw)
+    return KeyframeCloud(kf.keyframe_id, kf.t_s, p_W, R_W_C, float(res), grid_depth, gray, grid_bgr)
