@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 MAVPROXY := $(BIN)/mavproxy.py
 
-.PHONY: venv run test bench bench-outputs
+.PHONY: venv run test bench bench-outputs soak
 
 venv: $(STAMP)
 
@@ -16,11 +16,11 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $@
 
-# The main job: fly a synthetic 20 s orbit (exact ground truth, no shared data
-# needed) into results/sim_circle, then replay it with the NI-SLAM tracker.
+# The main job: the onboard service on a synthetic 20 s orbit (exact ground
+# truth, no shared data or hardware needed), generated on the fly and replayed
+# at real-time pace, MAVLink to 127.0.0.1:14550 and zenoh on 127.0.0.1:7447.
 run: $(STAMP)
-	$(BIN)/nislam sim circle --seconds 20 --out results/sim_circle
-	$(BIN)/nislam replay results/sim_circle --out results/sim_circle/replay
+	$(BIN)/nislam run --sim circle --seconds 20 --config config/demo.toml --out results/run_sim_circle
 
 # MAVProxy is the receiving peer of one test (tests/test_mavlink_mavproxy.py).
 # Installed without its dependencies: it requires opencv-python, which would
@@ -40,3 +40,8 @@ bench: $(STAMP)
 # MAVLink send rate and jitter, per-frame cost of the outputs in the loop.
 bench-outputs: $(STAMP)
 	$(BIN)/python scripts/bench_outputs.py
+
+# The service replaying a looped synthetic flight for 10 minutes: RSS, latency
+# percentiles over time, dropped frames (scripts/soak.py --help).
+soak: $(STAMP)
+	$(BIN)/python scripts/soak.py --minutes 10

@@ -1,4 +1,5 @@
-"""The `nislam` command: `nislam replay`, `nislam bench` and `nislam listen`.
+"""The `nislam` command: `nislam run` (the onboard service), `replay`, `bench`,
+`sim`, `faults`, `listen` and `record`.
 
 Parsing comes first and imports nothing heavy, so `--help` and usage errors
 are instant; numpy, OpenCV and the tracker load only once a command runs.
@@ -85,6 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="passes over the frames, a fresh tracker each (default 1)")
     bp.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     bp.set_defaults(func=cmd_bench)
+    _add_run_parser(sub, verbose)
     _add_listen_parser(sub, verbose)
     _add_record_parser(sub, verbose)
     _add_sim_parsers(sub, verbose)
@@ -247,6 +249,105 @@ def cmd_bench(args: argparse.Namespace) -> int:
           f"-> {stats['hz']:.0f} Hz")
     if kf is not None:
         print(f"key-frame frames: {stats['keyframe_frames']}, median {kf:.2f} ms")
+    return 0
+
+
+# --------------------------------------------------------------------------- nislam run
+
+
+def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
+    rn = sub.add_parser(
+        "run", parents=[verbose], help="the onboard service: sensors -> tracker -> MAVLink/zenoh",
+        description="Run the tracking loop on the configured hardware, or on a recorded "
+                    "(--replay) or synthetic (--sim) flight replayed at its own pace through "
+                    "the same drivers. Prints a statistics line every [service] stats_period_s "
+                    "and a summary at the end (with ATE when the flight has ground truth). "
+                    "SIGTERM / Ctrl-C: finish the frame, flush the outputs, exit 0.")
+    rn.add_argument("--config", type=Path, metavar="FILE", help="TOML config (default: built-in)")
+    rn.add_argument("--mavlink", metavar="URL",
+                    help="send the vision feed here (pymavlink connection string, e.g. "
+                         "udpout:127.0.0.1:14550); enables [mavlink]")
+    rn.add_argument("--zenoh-connect", action="append", metavar="EP",
+                    help="zenoh endpoint to connect to (repeatable); enables [zenoh]")
+    rn.add_argument("--zenoh-listen", action="append", metavar="EP",
+                    help="zenoh endpoint to listen on (repeatable); enables [zenoh]")
+    rn.add_argument("--vehicle", metavar="ID", help="zenoh vehicle id ([zenoh] vehicle)")
+    rn.add_argument("--tracker", metavar="NAME", help="primary tracker (nislam, fastorb)")
+    src = rn.add_mutually_exclusive_group()
+    src.add_argument("--replay", type=Path, metavar="SEQ_DIR",
+                     help="replay a recording at real-time pace instead of the hardware")
+    src.add_argument("--sim", metavar="SCENARIO",
+                     help="generate a synthetic flight (" + ", ".join(SCENARIO_NAMES) + ") "
+                          "and replay it")
+    rn.add_argument("--seconds", type=float, metavar="N",
+                    help="stop after N seconds (with --sim: the flight's length, default 20)")
+    rn.add_argument("--loop", action="store_true",
+                    help="with --replay / --sim and --seconds: play the flight forwards and "
+                         "backwards in turn until --seconds have passed (soak runs)")
+    rn.add_argument("--seed", type=int, default=0, metavar="N", help="--sim seed (default 0)")
+    rn.add_argument("--out", type=Path, metavar="DIR",
+                    help="write trajectory, metrics and config here (default with --replay / "
+                         "--sim: results/run_<name>; on hardware: nothing)")
+    rn.set_defaults(func=cmd_run)
+
+
+def _run_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if args.tracker is not None:
+        out["tracker.name"] = args.tracker
+    if args.mavlink is not None:
+        out.update({"mavlink.connect": args.mavlink, "mavlink.enabled": True})
+    if args.zenoh_connect is not None:
+        out.update({"zenoh.connect": args.zenoh_connect, "zenoh.enabled": True})
+    if args.zenoh_listen is not None:
+        out.update({"zenoh.listen": args.zenoh_listen, "zenoh.enabled": True})
+    if args.vehicle is not None:
+        out["zenoh.vehicle"] = args.vehicle
+    return out
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from onboard.config import load_config
+    from onboard.sdnotify import Notifier
+    from onboard.service import Service, hardware_sources, replay_sources
+
+    if args.seconds is not None and not args.seconds > 0:
+        raise NislamError(f"--seconds must be > 0, got {args.seconds}")
+    if args.loop and (args.seconds is None or (args.replay is None and args.sim is None)):
+        raise NislamError("--loop needs --seconds and --replay or --sim")
+    cfg = load_config(args.config, _run_overrides(args), overrides_origin="command line")
+    out_dir, seconds = args.out, args.seconds
+    loop_s = seconds if args.loop else None
+    if args.sim is not None:
+        from sim_replay.sim import SimOptions, simulate
+
+        out_dir = out_dir or Path("results") / f"run_sim_{args.sim}"
+        flight_s = 20.0 if args.loop or seconds is None else seconds
+        flight = simulate(args.sim, out_dir / "flight", SimOptions(seconds=flight_s, seed=args.seed),
+                          progress=True)
+        print("\n".join(flight.summary_lines()), flush=True)
+        sources, cfg = replay_sources(cfg, flight.out_dir, loop_s)
+        if not args.loop:
+            seconds = None  # the replay ends with the flight
+    elif args.replay is not None:
+        out_dir = out_dir or Path("results") / f"run_{args.replay.resolve().name}"
+        sources, cfg = replay_sources(cfg, args.replay, loop_s)
+    else:
+        sources = hardware_sources(cfg)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        service = Service(cfg, sources, stop, seconds=seconds, notifier=Notifier(),
+                          emit=lambda line: print(line, flush=True), out_dir=out_dir)
+        result = service.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print("\n".join(result.summary_lines()), flush=True)
     return 0
 
 

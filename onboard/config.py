@@ -6,7 +6,8 @@ Sections map one-to-one onto frozen dataclasses: `[replay]` -> ReplayConfig,
 `[mavlink]` -> MavlinkConfig
 and `[zenoh]` -> ZenohConfig (the outputs); `[ahrs]`, `[myahrs]`,
 `[autopilot]`, `[oak]` and `[record]` -> the driver and recording sections
-(AhrsConfig ... RecordConfig). The `[nislam]` and `[fastorb]` keys are read
+(AhrsConfig ... RecordConfig); `[service]` -> ServiceConfig (`nislam run`).
+The `[nislam]` and `[fastorb]` keys are read
 from those dataclasses' fields, so a parameter added to a tracker is
 configurable (and validated by its type) without touching this module.
 
@@ -191,6 +192,21 @@ class RecordConfig:
 
 
 @dataclass(frozen=True)
+class ServiceConfig:
+    """`nislam run`, the onboard loop (onboard/service.py)."""
+
+    fallback_tracker: str = ""  # tracker while the attitude is missing ("" none, "fastorb")
+    return_after_s: float = 1.0  # attitude back this long: hand back to the primary tracker
+    frame_timeout_s: float = 0.5  # no frame for this long: lost ("no frames")
+    degraded_gap_s: float = 0.2  # a gap between frames longer than this: degraded
+    start_grace_s: float = 10.0  # "starting" this long without a frame, then lost
+    poll_s: float = 0.05  # longest wait for a frame per loop turn (watchdog and stop latency)
+    attitude_wait_s: float = 0.05  # longest wait for the AHRS to reach a frame's capture time
+    stats_period_s: float = 5.0  # one statistics line (and systemd STATUS) this often
+    replay_speed: float = 1.0  # --replay / --sim pace: 1 = real time
+
+
+@dataclass(frozen=True)
 class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     attitude: AttitudeErrorConfig = field(default_factory=AttitudeErrorConfig)
@@ -204,6 +220,7 @@ class Config:
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
     oak: OakConfig = field(default_factory=OakConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
+    service: ServiceConfig = field(default_factory=ServiceConfig)
 
 
 SECTIONS: dict[str, type] = {
@@ -219,6 +236,7 @@ SECTIONS: dict[str, type] = {
     "autopilot": AutopilotConfig,
     "oak": OakConfig,
     "record": RecordConfig,
+    "service": ServiceConfig,
 }
 
 
@@ -450,6 +468,15 @@ RULES: dict[str, Range | Choice | Check] = {
     "record.png_compression": Range(0, 9),
     "record.queue_frames": POSITIVE,
     "record.start_timeout_s": POSITIVE,
+    "service.fallback_tracker": Choice(("",) + tuple(n for n in TRACKER_NAMES if n != "nislam")),
+    "service.return_after_s": NON_NEGATIVE,
+    "service.frame_timeout_s": POSITIVE,
+    "service.degraded_gap_s": POSITIVE,
+    "service.start_grace_s": POSITIVE,
+    "service.poll_s": Range(0.001, 1.0),
+    "service.attitude_wait_s": Range(0.0, 1.0),
+    "service.stats_period_s": POSITIVE,
+    "service.replay_speed": Range(0.01, 100.0),
 }
 DEFAULT_RULES: dict[type, Range] = {int: NON_NEGATIVE, float: ANY}
 

@@ -50,6 +50,11 @@ State (HEARTBEAT system_status, quality):
     CRITICAL  5   tracking, quality below it (back at +5)        1-100
     FLIGHT_TERMINATION 8  lost, or no result for `stale_s`        -1
 
+When the onboard loop reports its health (`publish_health`, onboard/health.py:
+starting, tracking, degraded, lost, which also weighs sensor freshness and
+the fallback tracker), the HEARTBEAT carries that instead (STANDBY, ACTIVE,
+CRITICAL, FLIGHT_TERMINATION), and each change goes out as a STATUSTEXT.
+
 Threads. `publish()` only appends the result to a bounded queue (the oldest
 is dropped when full) and wakes the sender thread, which owns the link:
 it converts, sends, answers TIMESYNC (reading its own link every 2 ms),
@@ -86,6 +91,7 @@ from onboard import NislamError
 from onboard.config import MavlinkConfig
 from onboard.frames import KeyframeCloud, TrackResult, TrackState
 from onboard.geometry import so3_log
+from onboard.health import Health, HealthReport
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +186,13 @@ class FeedState(enum.Enum):
     def mav_state(self) -> int:
         return self.value
 
+
+HEALTH_STATE = {  # onboard health -> the HEARTBEAT's system_status
+    Health.STARTING: FeedState.STANDBY,
+    Health.TRACKING: FeedState.ACTIVE,
+    Health.DEGRADED: FeedState.DEGRADED,
+    Health.LOST: FeedState.LOST,
+}
 
 _SEVERITY = {
     FeedState.BOOT: MAV_SEVERITY_INFO,
@@ -451,6 +464,8 @@ class MavlinkOutput:
         self._next_origin = 0.0
         self._shared = link
         self._rx: deque[Any] = deque(maxlen=64)  # messages a shared link handed over
+        self._health: FeedState | None = None  # the loop's health, when it reports one
+        self._health_texts: deque[tuple[int, str]] = deque(maxlen=8)
         self._remove_listener: Callable[[], None] | None = None
         if link is not None:
             self._remove_listener = link.add_listener(
@@ -471,6 +486,15 @@ class MavlinkOutput:
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         pass  # the flight controller has no use for the map
 
+    def publish_health(self, report: HealthReport) -> None:
+        state = HEALTH_STATE[report.state]
+        if state is self._health and not report.changed:
+            return
+        self._health = state  # one attribute store: atomic; the sender reads it
+        if report.changed:
+            self._health_texts.append((_SEVERITY[state], f"{report.state.value}: {report.reason}"))
+        self._wake()
+
     def close(self, timeout_s: float = 2.0) -> None:
         """Send what is queued, then stop; the link closes with the thread."""
         if self._stop.is_set():
@@ -490,6 +514,7 @@ class MavlinkOutput:
             out = {k: getattr(s, k) for k in s.__dataclass_fields__}
             out["sent_by_type"] = dict(s.sent_by_type)
         out["state"] = self.feed.state.name
+        out["system_status"] = self._system_status.name
         out["reset_counter"] = self.feed.reset_counter
         return out
 
@@ -536,6 +561,10 @@ class MavlinkOutput:
             self._wait(now)
         if self._link_open:
             self._receive()
+        if self._health_texts:
+            while self._health_texts:
+                self._statustext(*self._health_texts.popleft())
+            self._heartbeat()  # the new state at once
         while self._queue:
             result = self._queue.popleft()
             with self._lock:
@@ -566,7 +595,8 @@ class MavlinkOutput:
         if self._conn is not None:
             timeout = min(timeout, RX_POLL_S)  # our own link: look for TIMESYNC requests
         with self._cond:
-            if not self._queue and not self._rx and not self._stop.is_set():
+            idle = not (self._queue or self._rx or self._health_texts)
+            if idle and not self._stop.is_set():
                 self._cond.wait(timeout)
 
     # ------------------------------------------------------------- link
@@ -720,10 +750,14 @@ class MavlinkOutput:
                             s.reset_counter)
         return ok
 
+    @property
+    def _system_status(self) -> FeedState:
+        return self._health if self._health is not None else self.feed.state
+
     def _heartbeat(self) -> None:
         self._next_heartbeat = time.monotonic() + self.cfg.heartbeat_period_s
         if self._send("heartbeat", MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0,
-                      self.feed.state.mav_state):
+                      self._system_status.mav_state):
             with self._lock:
                 self._stats.heartbeats += 1
 

@@ -24,6 +24,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Protocol
 
 from onboard.frames import KeyframeCloud, TrackResult
+from onboard.health import HealthReport
 
 if TYPE_CHECKING:
     from onboard.config import Config
@@ -41,6 +42,10 @@ class Output(Protocol):
         """Hand over a key frame outside a result (`tracker.finish()`)."""
         ...
 
+    def publish_health(self, report: HealthReport) -> None:
+        """The onboard loop's health (each loop turn; `report.changed` on a change)."""
+        ...
+
     def close(self) -> None:
         """Flush what is queued (briefly) and stop."""
         ...
@@ -54,6 +59,9 @@ class NullOutput:
         pass
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
+        pass
+
+    def publish_health(self, report: HealthReport) -> None:
         pass
 
     def close(self) -> None:
@@ -79,6 +87,10 @@ class OutputGroup:
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         for out in self.outputs:
             out.publish_keyframe(cloud)
+
+    def publish_health(self, report: HealthReport) -> None:
+        for out in self.outputs:
+            out.publish_health(report)
 
     def close(self) -> None:
         """Close every member, even when one fails (the first error is raised)."""

@@ -153,14 +153,14 @@ def replay(
     ev = evaluate_track(track_log, seq, cfg.replay.gt_max_gap_s)
 
     paths = {name: out_dir / name for name in RESULT_FILES}
-    _write_trajectories(ev, paths)
+    write_trajectories(ev, out_dir)
     plot_note = _write_plot(ev, paths[PLOT_FILE], f"{seq.path.name}, {tracker.name}")
     map_points = _write_map(track_log.clouds, paths[MAP_FILE])
-    _write_text(paths[CONFIG_FILE], config_to_toml(cfg))
+    write_text_atomic(paths[CONFIG_FILE], config_to_toml(cfg))
     metrics = build_metrics(
         seq, cfg, track_log, ev, attitude_label, map_points, plot_written=plot_note is None
     )
-    _write_text(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    write_text_atomic(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     written = {name: p for name, p in paths.items() if p.exists()}
     return ReplayResult(metrics, out_dir, written, plot_note)
 
@@ -274,10 +274,11 @@ def _make_out_dir(out_dir: Path) -> None:
         raise NislamError(f"cannot create output folder {out_dir}: {e.strerror}") from None
 
 
-def _write_trajectories(ev: Evaluation, paths: dict[str, Path]) -> None:
+def write_trajectories(ev: Evaluation, out_dir: Path) -> None:
+    """trajectory.tum, and groundtruth_at_frames.tum when there is ground truth."""
     est = ev.estimate
-    write_tum(paths[TRAJECTORY_FILE], est.t_s, est.p_xyz_m, est.q_xyzw)
-    gt_path = paths[GT_AT_FRAMES_FILE]
+    write_tum(out_dir / TRAJECTORY_FILE, est.t_s, est.p_xyz_m, est.q_xyzw)
+    gt_path = out_dir / GT_AT_FRAMES_FILE
     if ev.groundtruth is None:
         # A file from an earlier run would pair with this run's trajectory.
         gt_path.unlink(missing_ok=True)
@@ -311,7 +312,7 @@ def _write_map(clouds: list[KeyframeCloud], path: Path) -> int:
     return len(xyz)
 
 
-def _write_text(path: Path, text: str) -> None:
+def write_text_atomic(path: Path, text: str) -> None:
     """Temp file then rename: a reader never sees half a file. Plain open()
     rather than mkstemp so the file gets the user's umask, not mode 0600."""
     tmp = path.with_name(path.name + ".tmp")

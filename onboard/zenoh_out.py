@@ -10,7 +10,11 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         reset_counter, lost_reason; the pose fields are null
                         when the frame is not trusted. W is the tracker's
                         world, C the camera optical frame (README "Frames").
-    status              every `status_period_s`, JSON: state, quality (-1 lost,
+    status              every `status_period_s` (and at once when the loop's
+                        health changes), JSON: state (the onboard loop's
+                        health: "starting", "tracking", "degraded", "lost",
+                        with health_reason; without a loop, the last
+                        result's state), quality (-1 lost,
                         0 starting, 1-100), frame_hz and pose_hz over the
                         period, psr (last) and psr_mean, counters (frames,
                         frames_tracked, frames_lost, keyframes, resets), the
@@ -55,6 +59,7 @@ from scipy.spatial.transform import Rotation
 from onboard import NislamError
 from onboard.config import ZenohConfig
 from onboard.frames import KeyframeCloud, TrackResult, TrackState
+from onboard.health import HealthReport
 from onboard.mapcodec import ENCODING as KEYFRAME_ENCODING
 from onboard.mapcodec import MapKeyframe, encode_keyframe
 
@@ -153,6 +158,11 @@ class _Worker(Generic[T]):
             self._items.append(item)
             self._cond.notify()
 
+    def wake(self) -> None:
+        """Run `tick()` now rather than when it asked to."""
+        with self._cond:
+            self._cond.notify()
+
     def stop(self, timeout_s: float) -> bool:
         """Handle what is queued, then stop; False if the thread is still busy."""
         with self._cond:
@@ -239,6 +249,7 @@ class ZenohOutput:
         self._period = {"frames": 0, "tracked": 0, "psr_sum": 0.0, "psr_n": 0}
         self._period_start = clock()
         self._last: TrackResult | None = None
+        self._health: HealthReport | None = None
         self._next_status = clock()
         self._pose_worker: _Worker[TrackResult] = _Worker(
             "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._status_tick)
@@ -255,6 +266,12 @@ class ZenohOutput:
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         self._map_worker.put(cloud)
+
+    def publish_health(self, report: HealthReport) -> None:
+        self._health = report  # one attribute store; the pose thread reads it
+        if report.changed:
+            self._next_status = self._clock()  # publish the change now
+            self._pose_worker.wake()
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Publish what is queued, then undeclare and close the session."""
@@ -328,13 +345,18 @@ class ZenohOutput:
         return self.cfg.status_period_s
 
     def _status(self, now: float) -> dict[str, Any]:
-        last, p = self._last, self._period
+        last, p, health = self._last, self._period, self._health
         span = max(now - self._period_start, 1e-9)
+        if health is not None:
+            state = health.state.value
+        else:
+            state = "starting" if last is None else last.state.value
         out = {
             "t_s": now,
             "vehicle": self.cfg.vehicle,
             "uptime_s": now - self._start,
-            "state": "starting" if last is None else last.state.value,
+            "state": state,
+            "health_reason": None if health is None else health.reason,
             "quality": 0 if last is None else tracking_quality(last),
             "lost_reason": None if last is None else last.lost_reason,
             "frame_hz": p["frames"] / span,

@@ -12,11 +12,15 @@ through the same interfaces as the hardware drivers.
   sequence has one, else ground truth (the camera's own orientation, mount
   identity, as replays of TUM data do).
 
-`open_replay(seq_dir, ...)` builds the three on one clock.
+`open_replay(seq_dir, ...)` builds the three on one clock. With `passes` > 1
+the recording plays forwards, backwards, forwards, ... (`pingpong_schedule`):
+the camera's path stays continuous at every turn, so a soak test can run for
+as long as it likes on one recording.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -83,13 +87,36 @@ class ReplayClock:
                 return False
 
 
+def pingpong_schedule(t_s: np.ndarray, passes: int, span_s: tuple[float, float],
+                      gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(index into `t_s`, played stamp) for `passes` alternating passes over
+    the increasing stamps `t_s` within `span_s` = (first, last): forwards, then
+    backwards in time mirrored onto a continuing clock, and so on, `gap_s`
+    between passes so the played stamps increase strictly. Frames and attitude
+    samples use the same span and gap, so they stay paired."""
+    t = np.asarray(t_s, dtype=np.float64)
+    first, last = span_s
+    inside = np.flatnonzero((t >= first) & (t <= last))
+    period = last - first + gap_s
+    idx, played = [], []
+    for k in range(passes):
+        order = inside if k % 2 == 0 else inside[::-1]
+        local = t[order] - first if k % 2 == 0 else last - t[order]
+        idx.append(order)
+        played.append(first + k * period + local)
+    return np.concatenate(idx), np.concatenate(played)
+
+
 class ReplayCamera(DriverThread):
-    """Frames of `seq` at their stamps into a FrameSlot (a CameraSource)."""
+    """Frames of `seq` at their stamps into a FrameSlot (a CameraSource);
+    `schedule` (index, played stamp) replays them in another order."""
 
     def __init__(self, seq: Sequence, clock: ReplayClock, camera: CameraModel | None = None,
-                 delivery_s: float = FRAME_DELIVERY_S) -> None:
+                 delivery_s: float = FRAME_DELIVERY_S,
+                 schedule: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         super().__init__(f"replay_camera:{seq.path.name}")
         self.seq = seq
+        self.schedule = schedule or (np.arange(len(seq)), seq.frame_times_s)
         self.clock = clock
         self.delivery_s = delivery_s
         self.camera = camera or seq.camera  # as frames are delivered (see delivered_camera)
@@ -113,11 +140,13 @@ class ReplayCamera(DriverThread):
 
     def _run(self) -> None:
         try:
-            for i in range(len(self.seq)):
-                frame = self.seq.read_frame(i)  # decode ahead of its stamp
+            for i, t_play in zip(*self.schedule):
+                frame = self.seq.read_frame(int(i))  # decode ahead of its stamp
                 if frame is None:
                     self.unreadable += 1
                     continue
+                if frame.t_s != t_play:
+                    frame = dataclasses.replace(frame, t_s=float(t_play))
                 if not self.clock.wait_until(frame.t_s + self.delivery_s, self._stop):
                     return
                 self.slot.put(frame)
@@ -201,11 +230,20 @@ def open_replay(
     assoc_max_dt_s: float = 0.02,
     undistort: bool = True,
     mono_ns: Callable[[], int] = time.monotonic_ns,
+    passes: int = 1,
 ) -> Replay:
     """Replay drivers for a TUM-layout sequence; attitude within PREROLL_S
-    before the first frame to TAIL_S after the last is played."""
+    before the first frame to TAIL_S after the last is played. `passes` > 1:
+    forwards and backwards in turn (pingpong_schedule), frames and attitude
+    mirrored alike."""
+    if passes < 1:
+        raise ValueError("passes must be >= 1")
     seq = open_sequence(seq_dir, assoc_max_dt_s, undistort)
     t_first, t_last = float(seq.frame_times_s[0]), float(seq.frame_times_s[-1])
+    # Mirrored passes turn half a frame interval beyond the first and last
+    # frames, so attitude brackets every frame at the turns too.
+    half_s = 0.5 * float(np.median(np.diff(seq.frame_times_s))) if len(seq) > 1 else 0.017
+    span = (t_first - half_s, t_last + half_s)
     clock = ReplayClock(t_first - PREROLL_S, speed, mono_ns)
     if seq.attitude is not None:
         traj, label = seq.attitude, "attitude.txt"
@@ -221,6 +259,11 @@ def open_replay(
         keep = (traj.t_s >= t_first - PREROLL_S) & (traj.t_s <= t_last + TAIL_S)
         if not keep.any():
             raise NislamError(f"{seq.path}: {label} has no sample near the frames")
-        attitude = ReplayAttitude(traj.t_s[keep], traj.q_xyzw[keep], clock, buffer.push)
-    camera = ReplayCamera(seq, clock, delivered_camera(seq.camera, undistort))
+        t_att, q_att = traj.t_s[keep], traj.q_xyzw[keep]
+        if passes > 1:  # mirrored like the frames: the same map from recording to played time
+            i_att, t_att = pingpong_schedule(t_att, passes, span, 0.0)
+            q_att = q_att[i_att]
+        attitude = ReplayAttitude(t_att, q_att, clock, buffer.push)
+    schedule = pingpong_schedule(seq.frame_times_s, passes, span, 0.0) if passes > 1 else None
+    camera = ReplayCamera(seq, clock, delivered_camera(seq.camera, undistort), schedule=schedule)
     return Replay(seq, clock, camera, attitude, buffer, label)

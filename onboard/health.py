@@ -1,0 +1,112 @@
+"""The service's health: starting, tracking, degraded or lost, from sensor
+freshness and tracker quality. Pure: time comes in with every update.
+
+    STARTING   no trusted pose yet (sensors coming up, first key frame);
+               after `start_grace_s` without a frame it is LOST instead
+    TRACKING   the newest result is trusted, quality >= degraded_quality,
+               the primary tracker runs and frames arrive on time
+    DEGRADED   trusted, but quality below degraded_quality (back at +5),
+               the fallback tracker runs (no attitude), or the last frame
+               gap was longer than `degraded_gap_s`
+    LOST       the newest result is untrusted after a pose was had, or no
+               frame for `frame_timeout_s`
+
+The MAVLink heartbeat (system_status) and the zenoh status carry the state.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from onboard.frames import TrackResult
+
+QUALITY_HYSTERESIS = 5  # as the MAVLink feed's DEGRADED <-> ACTIVE
+
+
+class Health(enum.Enum):
+    STARTING = "starting"
+    TRACKING = "tracking"
+    DEGRADED = "degraded"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class HealthReport:
+    state: Health
+    reason: str  # one line: why this state (shown in STATUSTEXT and zenoh status)
+    changed: bool = False  # differs from the previous report's state
+
+
+@dataclass(frozen=True)
+class HealthThresholds:
+    frame_timeout_s: float = 0.5
+    degraded_gap_s: float = 0.2
+    degraded_quality: int = 20
+    start_grace_s: float = 10.0
+
+
+class HealthMonitor:
+    """Feed it every loop turn; `report` is the current state."""
+
+    def __init__(self, thresholds: HealthThresholds, start_s: float) -> None:
+        self.th = thresholds
+        self.start_s = start_s
+        self.report = HealthReport(Health.STARTING, "waiting for sensors")
+        self._last_frame_s: float | None = None
+        self._gap_s = 0.0
+        self._had_pose = False
+        self._result: TrackResult | None = None
+        self._fallback: str | None = None
+        self._announced = False  # the first report counts as a change: outputs announce it
+
+    def on_frame(self, now_s: float, result: TrackResult, fallback: str | None) -> HealthReport:
+        """A frame was tracked at `now_s` (our clock); `fallback` names the
+        fallback tracker when it produced `result`."""
+        if self._last_frame_s is not None:
+            self._gap_s = now_s - self._last_frame_s
+        self._last_frame_s = now_s
+        self._result = result
+        self._fallback = fallback
+        self._had_pose = self._had_pose or result.trusted
+        return self._set(*self._classify(now_s))
+
+    def on_idle(self, now_s: float) -> HealthReport:
+        """A loop turn without a new frame."""
+        return self._set(*self._classify(now_s))
+
+    def _classify(self, now_s: float) -> tuple[Health, str]:
+        th = self.th
+        if self._last_frame_s is None:
+            waited = now_s - self.start_s
+            if waited > th.start_grace_s:
+                return Health.LOST, f"no frames from the camera for {waited:.0f} s"
+            return Health.STARTING, "waiting for the camera"
+        silence = now_s - self._last_frame_s
+        if silence > th.frame_timeout_s:
+            return Health.LOST, f"no frames for {silence:.1f} s"
+        r = self._result
+        assert r is not None
+        if not r.trusted:
+            if not self._had_pose and self.report.state is not Health.LOST:
+                return Health.STARTING, f"initialising ({r.lost_reason or 'no pose yet'})"
+            return Health.LOST, r.lost_reason or "untrusted"
+        problems = []
+        floor = th.degraded_quality
+        if self.report.state is Health.DEGRADED:
+            floor += QUALITY_HYSTERESIS
+        if r.quality < floor:
+            problems.append(f"quality {r.quality}")
+        if self._fallback is not None:
+            problems.append(f"fallback tracker {self._fallback} (no attitude)")
+        if self._gap_s > th.degraded_gap_s:
+            problems.append(f"frame gap {self._gap_s:.2f} s")
+        if problems:
+            return Health.DEGRADED, ", ".join(problems)
+        return Health.TRACKING, f"quality {r.quality}"
+
+    def _set(self, state: Health, reason: str) -> HealthReport:
+        changed = state is not self.report.state or not self._announced
+        self._announced = True
+        self.report = HealthReport(state, reason, changed)
+        return self.report

@@ -1,0 +1,499 @@
+"""`nislam run`: the onboard service. One low-power loop on the calling thread:
+
+    take the newest frame (stale ones are dropped by the camera's slot, never
+    queued) -> the tracker, which looks the attitude up at the capture time
+    -> the outputs (MAVLink, zenoh) -> the health state machine -> the
+    watchdog ping
+
+Drivers (camera, AHRS, the autopilot link) run on their own threads, as do
+the outputs' senders; nothing here blocks on a device or a socket for longer
+than `[service] poll_s`, so a missing camera shows as lost and a hung loop
+stops the watchdog pings (systemd then restarts us).
+
+Sources: the hardware of the config (drivers.hardware), or a recorded or
+synthetic sequence replayed at its own pace through the same interfaces
+(sim_replay.sources). With ground truth (replays) the trusted poses are
+scored at the end (ATE after SE(3) alignment) and written like `nislam
+replay` writes them.
+
+Stopping (SIGTERM/SIGINT set `stop`): the frame in hand is finished, the
+last key frame goes to the map, the outputs flush, devices close.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from onboard import NislamError
+from onboard.bench import pin_one_core
+from onboard.config import Config, config_to_toml
+from onboard.fallback import SwitchingTracker
+from drivers.attitude import AttitudeBuffer
+from onboard.frames import CameraIntrinsics, TrackResult
+from onboard.health import Health, HealthMonitor, HealthReport, HealthThresholds
+from onboard.outputs import Output, make_outputs
+from onboard.replay import CONFIG_FILE, METRICS_FILE, TRAJECTORY_FILE, TrackLog, evaluate_track
+from onboard.replay import write_text_atomic, write_trajectories
+from onboard.sdnotify import Notifier
+from onboard.trackers import Tracker, make_tracker
+from onboard.trajectory import write_tum
+
+log = logging.getLogger(__name__)
+
+Emit = Callable[[str], None]
+ATTITUDE_MARGIN_S = 0.005  # beyond the sample needed: interpolation brackets it
+TrackerFactory = Callable[[str, CameraIntrinsics, Config], Tracker]
+
+
+class CameraSource(Protocol):  # drivers.camera.CameraSource, the part the loop uses
+    def wait_camera(self, timeout_s: float) -> Any: ...
+
+    def take(self, after_seq: int = 0, timeout_s: float = 0.0) -> Any: ...
+
+    @property
+    def exhausted(self) -> bool: ...
+
+
+@dataclass
+class Sources:
+    """What the loop reads: a camera, the attitude buffer, and the object that
+    starts and stops their threads (drivers.hardware.Hardware or
+    sim_replay.sources.Replay). `sequence`: the replayed recording (ground
+    truth for the final score), None on hardware."""
+
+    label: str
+    camera: Any  # CameraSource
+    attitude: AttitudeBuffer
+    runner: Any  # .start(), .stop(timeout_s) -> bool, .stop_times_s
+    link: Any = None  # drivers.fc_link.FcLink shared with the MAVLink output
+    sequence: Any = None  # sim_replay.tum.Sequence
+    attitude_label: str = ""
+
+    def start(self) -> None:
+        self.runner.start()
+
+    def stop(self) -> dict[str, float]:
+        self.runner.stop()
+        return dict(self.runner.stop_times_s)
+
+
+def hardware_sources(cfg: Config) -> Sources:
+    """The OAK-D and the configured AHRS (drivers.hardware.make_hardware)."""
+    from drivers.hardware import make_hardware
+
+    hw = make_hardware(cfg, camera=True)
+    assert hw.camera is not None
+    return Sources("OAK-D", hw.camera, hw.buffer, hw, link=hw.link,
+                   attitude_label=hw.attitude_label)
+
+
+def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
+                   ) -> tuple[Sources, Config]:
+    """A recording replayed at `[service] replay_speed` through the driver
+    interfaces; with `loop_s`, forwards and backwards in turn for at least
+    that long (then there is no ground truth to score against). The camera
+    mount comes from the recording (one source of truth for R_B_C): the
+    config's [mavlink] mount is set to it."""
+    from drivers.attitude import matrix_to_quat
+    from sim_replay.sources import open_replay
+    from sim_replay.tum import open_sequence
+
+    passes = 1
+    if loop_s is not None:
+        t = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, False).frame_times_s
+        passes = int(math.ceil(loop_s * cfg.service.replay_speed / max(t[-1] - t[0], 1.0))) + 1
+    rp = open_replay(seq_dir, speed=cfg.service.replay_speed,
+                     buffer_capacity=cfg.ahrs.buffer_samples, max_age_s=cfg.ahrs.max_age_s,
+                     max_gap_s=cfg.ahrs.max_gap_s, assoc_max_dt_s=cfg.replay.assoc_max_dt_s,
+                     undistort=cfg.replay.undistort, passes=passes)
+    q = matrix_to_quat(rp.buffer.R_B_C)
+    mav = dataclasses.replace(cfg.mavlink, mount="custom", mount_q_B_C_xyzw=tuple(q))
+    cfg = dataclasses.replace(cfg, mavlink=mav)
+    label = f"replay of {rp.seq.path}" + (f" ({passes} passes)" if passes > 1 else "")
+    return Sources(label, rp.camera, rp.buffer, rp, sequence=rp.seq if passes == 1 else None,
+                   attitude_label=rp.attitude_label), cfg
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+class MsHistogram:
+    """Per-frame times in fixed 0.05 ms bins up to 2 s: percentiles of a run
+    of any length in constant memory (a service runs for hours)."""
+
+    BIN_MS = 0.05
+    MAX_MS = 2000.0
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(int(self.MAX_MS / self.BIN_MS) + 1, dtype=np.int64)
+        self.n = 0
+        self.max_ms = 0.0
+
+    def add(self, ms: float) -> None:
+        self.counts[min(int(ms / self.BIN_MS), len(self.counts) - 1)] += 1
+        self.n += 1
+        self.max_ms = max(self.max_ms, ms)
+
+    def percentile(self, q: float) -> float | None:
+        """The q-th percentile to a bin's width (bin centres); None when empty."""
+        if self.n == 0:
+            return None
+        rank = q / 100.0 * (self.n - 1)
+        i = int(np.searchsorted(np.cumsum(self.counts), rank + 1))
+        return min((i + 0.5) * self.BIN_MS, self.max_ms)
+
+    def stats(self) -> dict[str, float | None]:
+        median = self.percentile(50)
+        return {
+            "frame_ms_median": median,
+            "frame_ms_p95": self.percentile(95),
+            "frame_ms_p99": self.percentile(99),
+            "frame_ms_max": self.max_ms if self.n else None,
+        }
+
+
+@dataclass
+class LoopStats:
+    """Counters of the loop; per-frame times of the run (histogram) and of the
+    current statistics period. Memory stays constant however long it runs."""
+
+    frames: int = 0
+    tracked: int = 0
+    keyframes: int = 0
+    resets: int = 0
+    loop_turns: int = 0
+    idle_turns: int = 0
+    frame_ms: MsHistogram = field(default_factory=MsHistogram)  # track + publish
+    period_ms: list[float] = field(default_factory=list)
+    period_frames: int = 0
+    period_start_s: float = 0.0
+    last_psr: float = float("nan")
+    lost_reasons: collections.Counter = field(default_factory=collections.Counter)
+    health_changes: int = 0
+    periods: deque[dict[str, Any]] = field(  # one per stats line, the last hour at 5 s
+        default_factory=lambda: deque(maxlen=720))
+
+
+@dataclass
+class RunResult:
+    metrics: dict[str, Any]
+    out_dir: Path | None
+
+    def summary_lines(self) -> list[str]:
+        m = self.metrics
+        lines = [
+            f"source      {m['source']}  (tracker {m['tracker']}"
+            f"{', fallback ' + m['fallback_tracker'] if m['fallback_tracker'] else ''})",
+            f"ran         {m['seconds']:.1f} s, {m['frames']} frames tracked at "
+            f"{m['frame_hz']:.1f} Hz, dropped {m['frames_dropped']}",
+            f"tracked     {m['frames_tracked']} trusted, {m['frames'] - m['frames_tracked']} "
+            f"untrusted; key frames {m['keyframes']}; resets {m['reset_counter']}; "
+            f"tracker switches {m['tracker_switches']}",
+            f"per frame   median {_ms(m['frame_ms_median'])}, p95 {_ms(m['frame_ms_p95'])}, "
+            f"max {_ms(m['frame_ms_max'])} (track + publish)",
+            f"health      {m['health']} at the end; {m['health_changes']} changes",
+        ]
+        if m.get("ate_rmse_m") is not None:
+            lines.append(f"ATE RMSE    {m['ate_rmse_m']:.4f} m over {m['frames_evaluated']} "
+                         f"frames (SE(3)-aligned); RPE {_rpe(m)}")
+        elif m.get("evaluation_note"):
+            lines.append(f"ATE         not computed: {m['evaluation_note']}")
+        if self.out_dir is not None:
+            lines.append(f"output      {self.out_dir}")
+        return lines
+
+
+def _ms(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.1f} ms"
+
+
+def _rpe(m: dict[str, Any]) -> str:
+    v = m.get("rpe_trans_rmse_m")
+    return "n/a" if v is None else f"{v:.4f} m / {m['rpe_rot_rmse_deg']:.2f} deg (1 s)"
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+class Service:
+    """The loop and what it owns; `run()` returns when stopped, when the
+    replay ends or after `seconds`."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        sources: Sources,
+        stop: threading.Event,
+        *,
+        seconds: float | None = None,
+        notifier: Notifier | None = None,
+        emit: Emit | None = None,
+        out_dir: Path | None = None,
+        tracker_factory: TrackerFactory = make_tracker,
+        outputs: Output | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.sc = cfg.service
+        self.sources = sources
+        self.stop = stop
+        self.seconds = seconds
+        self.notifier = notifier or Notifier(env={})
+        self.emit = emit or (lambda line: log.info("%s", line))
+        self.out_dir = out_dir
+        self.tracker_factory = tracker_factory
+        self._outputs = outputs
+        self.stats = LoopStats()
+        # Trusted poses are kept only to be scored or written: a service on
+        # hardware without --out keeps nothing that grows.
+        keep = sources.sequence is not None or out_dir is not None
+        self.track_log: TrackLog | None = TrackLog() if keep else None
+        self.tracker: SwitchingTracker | None = None
+        self.health = HealthMonitor(HealthThresholds(
+            self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
+            self.sc.start_grace_s), time.monotonic())
+        self.ready = False
+        self._last_seq = 0
+        self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
+
+    def run(self) -> RunResult:
+        pin_one_core()
+        t_start = time.monotonic()
+        outputs = self._outputs if self._outputs is not None else make_outputs(
+            self.cfg, mavlink_link=self.sources.link)
+        stop_times: dict[str, float] = {}
+        self.sources.start()
+        try:
+            self.stats.period_start_s = t_start
+            self._loop(outputs, t_start)
+            self._finish(outputs)
+        finally:
+            self.notifier.stopping()
+            try:
+                outputs.close()
+            finally:
+                stop_times = self.sources.stop()
+                self.notifier.close()
+        return self._result(time.monotonic() - t_start, stop_times)
+
+    def _loop(self, outputs: Output, t_start: float) -> None:
+        deadline = None if self.seconds is None else t_start + self.seconds
+        poll = self.sc.poll_s
+        camera = self.sources.camera
+        while not self.stop.is_set():
+            now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                break
+            self.stats.loop_turns += 1
+            self.notifier.watchdog()
+            if self.tracker is None and not self._make_tracker(poll):
+                self._idle(outputs, now)
+                continue
+            got = camera.take(self._last_seq, poll)
+            if got is None:
+                if camera.exhausted:
+                    log.info("replay finished")
+                    break
+                self._idle(outputs, time.monotonic())
+                continue
+            self._last_seq, frame = got
+            self._frame(outputs, frame)
+
+    def _make_tracker(self, timeout_s: float) -> bool:
+        """Build the tracker once the camera tells its intrinsics."""
+        cam = self.sources.camera.wait_camera(timeout_s)
+        if cam is None:
+            return False
+        intr = cam.intrinsics()
+        primary = self.tracker_factory(self.cfg.tracker.name, intr, self.cfg)
+        fb = self.sc.fallback_tracker
+        make_fb = (lambda: self.tracker_factory(fb, intr, self.cfg)) if fb else None
+        self.tracker = SwitchingTracker(primary, make_fb, self.sc.return_after_s)
+        log.info("camera up: %dx%d, fx %.1f; tracker %s%s", intr.width, intr.height, intr.fx,
+                 primary.name, f" (fallback {fb})" if fb else "")
+        return True
+
+    def _frame(self, outputs: Output, frame: Any) -> None:
+        tracker = self.tracker
+        assert tracker is not None
+        self._wait_for_attitude(frame.t_s)
+        t0 = time.perf_counter()
+        result = tracker.track(frame, self.sources.attitude)
+        outputs.publish(result)
+        ms = (time.perf_counter() - t0) * 1e3
+        now = time.monotonic()
+        report = self.health.on_frame(
+            now, result, tracker.fallback.name if tracker.fallback is not None else None)
+        self._report(outputs, report)
+        self._log_result(result, ms)
+        if not self.ready:
+            self.ready = True
+            self.notifier.ready(f"tracking with {tracker.name}: first frame in")
+            log.info("ready: first frame tracked (%s)", report.state.value)
+        self._maybe_stats(now)
+
+    def _wait_for_attitude(self, t_s: float) -> None:
+        """The tracker looks the attitude up at the capture time plus its
+        offset estimate; a sample that late may still be on its way (a
+        positive offset, an AHRS a little behind the camera): wait for it,
+        at most `attitude_wait_s`, and only when it is due that soon (a
+        silent AHRS costs no time: the tracker reports it)."""
+        att = self.sources.attitude
+        newest = att.newest()
+        need_s = t_s + max(0.0, self._offset_s) + ATTITUDE_MARGIN_S
+        if newest is not None and 0.0 < need_s - newest.t_s <= self.sc.attitude_wait_s:
+            att.wait_covered(need_s, self.sc.attitude_wait_s)
+
+    def _idle(self, outputs: Output, now: float) -> None:
+        self.stats.idle_turns += 1
+        self._report(outputs, self.health.on_idle(now))
+        self._maybe_stats(now)
+
+    def _report(self, outputs: Output, report: HealthReport) -> None:
+        outputs.publish_health(report)
+        if report.changed:
+            self.stats.health_changes += 1
+            level = logging.WARNING if report.state in (Health.LOST, Health.DEGRADED) else logging.INFO
+            log.log(level, "health: %s (%s)", report.state.value, report.reason)
+
+    def _log_result(self, result: TrackResult, ms: float) -> None:
+        s = self.stats
+        s.frames += 1
+        s.period_frames += 1
+        s.frame_ms.add(ms)
+        s.period_ms.append(ms)
+        s.keyframes += int(result.new_keyframe)
+        s.resets = result.reset_counter
+        s.last_psr = result.psr
+        self._offset_s = result.attitude_offset_s
+        trusted = result.trusted and result.p_W_m is not None
+        s.tracked += int(trusted)
+        if not trusted:
+            s.lost_reasons[result.lost_reason or "unknown"] += 1
+        tl = self.track_log
+        if tl is not None and trusted:
+            tl.t_s.append(result.t_s)
+            tl.p_W_m.append(result.p_W_m)
+            tl.q_W_C_xyzw.append(result.q_W_C_xyzw)
+
+    def _maybe_stats(self, now: float) -> None:
+        s = self.stats
+        span = now - s.period_start_s
+        if span < self.sc.stats_period_s:
+            return
+        ms = np.asarray(s.period_ms) if s.period_ms else np.zeros(0)
+        period = {
+            "t_s": now,
+            "health": self.health.report.state.value,
+            "hz": s.period_frames / span,
+            "ms_median": float(np.median(ms)) if len(ms) else None,
+            "ms_p95": float(np.percentile(ms, 95)) if len(ms) else None,
+            "ms_p99": float(np.percentile(ms, 99)) if len(ms) else None,
+            "dropped": self._dropped(),
+            "psr": s.last_psr,
+            "keyframes": s.keyframes,
+            "resets": s.resets,
+            "attitude_offset_ms": self._offset_s * 1e3,
+        }
+        s.periods.append(period)
+        line = _stats_line(period, self.tracker)
+        self.emit(line)
+        self.notifier.status(line)
+        s.period_ms = []
+        s.period_frames = 0
+        s.period_start_s = now
+
+    def _dropped(self) -> int:
+        slot = getattr(self.sources.camera, "slot", None)
+        return 0 if slot is None else int(slot.stats.dropped)
+
+    def _finish(self, outputs: Output) -> None:
+        if self.tracker is None:
+            return
+        last = self.tracker.finish()
+        if last is not None:
+            outputs.publish_keyframe(last)
+
+    # ------------------------------------------------------------ the result
+    def _result(self, seconds: float, stop_times: dict[str, float]) -> RunResult:
+        s, tr = self.stats, self.tracker
+        metrics: dict[str, Any] = {
+            "source": self.sources.label,
+            "attitude_source": self.sources.attitude_label,
+            "tracker": self.cfg.tracker.name,
+            "fallback_tracker": self.sc.fallback_tracker,
+            "seconds": seconds,
+            "frames": s.frames,
+            "frames_tracked": s.tracked,
+            "frames_dropped": self._dropped(),
+            "frame_hz": s.frames / seconds if seconds > 0 else 0.0,
+            "keyframes": s.keyframes,
+            "reset_counter": s.resets,
+            "tracker_switches": 0 if tr is None else tr.switches,
+            "lost_reasons": dict(s.lost_reasons),
+            "health": self.health.report.state.value,
+            "health_changes": s.health_changes,
+            "loop_turns": s.loop_turns,
+            "stop_times_s": stop_times,
+            "periods": list(s.periods),
+            **s.frame_ms.stats(),
+        }
+        seq = self.sources.sequence
+        if seq is not None:
+            metrics["skipped"] = seq.skipped.as_dict()  # what the reader left out, by kind
+        if seq is not None and self.track_log is not None and s.frames:
+            ev = evaluate_track(self.track_log, seq, self.cfg.replay.gt_max_gap_s)
+            metrics["evaluation_note"] = ev.note
+            if ev.metrics is not None:
+                metrics.update(ev.metrics.as_dict())
+            if self.out_dir is not None:
+                self.out_dir.mkdir(parents=True, exist_ok=True)
+                write_trajectories(ev, self.out_dir)
+        elif self.out_dir is not None and self.track_log is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            est = self.track_log.trajectory()
+            write_tum(self.out_dir / TRAJECTORY_FILE, est.t_s, est.p_xyz_m, est.q_xyzw)
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(self.out_dir / CONFIG_FILE, config_to_toml(self.cfg))
+            write_text_atomic(self.out_dir / METRICS_FILE,
+                              json.dumps(_jsonable(metrics), indent=2, allow_nan=False) + "\n")
+        return RunResult(metrics, self.out_dir)
+
+
+def _stats_line(p: dict[str, Any], tracker: SwitchingTracker | None) -> str:
+    name = "-" if tracker is None else tracker.active_name
+    ms = "n/a" if p["ms_median"] is None else f"{p['ms_median']:.1f} ms (p95 {p['ms_p95']:.1f})"
+    psr = "n/a" if not np.isfinite(p["psr"]) else f"{p['psr']:.0f}"
+    return (f"{p['health']:<8} {p['hz']:5.1f} Hz  {ms}  dropped {p['dropped']}  "
+            f"PSR {psr}  key frames {p['keyframes']}  resets {p['resets']}  "
+            f"offset {p['attitude_offset_ms']:+.0f} ms  [{name}]")
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def check_source_args(replay: Path | None, sim: str | None) -> None:
+    if replay is not None and sim is not None:
+        raise NislamError("--replay and --sim exclude each other")

@@ -1,0 +1,135 @@
+"""Soak benchmark of the onboard service (a script, not a test).
+
+    python scripts/soak.py [--minutes 10] [--flight DIR] [--out DIR]
+
+Runs `nislam run --replay FLIGHT --loop` (the flight forwards and backwards
+in turn) for the given time with the demo outputs (MAVLink to 127.0.0.1, zenoh
+on a free 127.0.0.1 port, the zenoh map capped at 8 MB), samples the
+process's resident memory (VmRSS) every 5 s, and reports RSS at start and end,
+per-frame latency percentiles per minute (the service's own statistics
+periods: track + publish, on the loop thread) and dropped frames. Without
+--flight it renders a 20 s `circle` flight (640x480) first. Writes
+soak.json beside the service's metrics.json in --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+NISLAM = REPO / ".venv" / "bin" / "nislam"
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--flight", type=Path, help="TUM-layout flight to loop (default: render one)")
+    ap.add_argument("--out", type=Path, default=REPO / "results" / "soak")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    flight = args.flight
+    if flight is None:
+        flight = args.out / "flight"
+        if not (flight / "rgb.txt").exists():
+            subprocess.run([str(NISLAM), "sim", "circle", "--seconds", "20", "--out", str(flight),
+                            "--quiet"], check=True)
+    cfg = args.out / "soak.toml"
+    cfg.write_text(
+        "[mavlink]\nenabled = true\nconnect = \"udpout:127.0.0.1:14550\"\n"
+        f"[zenoh]\nenabled = true\nlisten = [\"tcp/127.0.0.1:{free_tcp_port()}\"]\n"
+        "map_max_mb = 8.0\n"
+        "[service]\nstats_period_s = 10.0\n")
+    seconds = args.minutes * 60.0
+    proc = subprocess.Popen(
+        [str(NISLAM), "run", "--replay", str(flight), "--loop", "--seconds", f"{seconds:g}",
+         "--config", str(cfg), "--out", str(args.out / "run")],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    samples: list[tuple[float, float]] = []  # (seconds since start, RSS MB)
+    lines: list[str] = []
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.append(line.rstrip())
+            print(line.rstrip(), flush=True)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    t0 = time.monotonic()
+    while proc.poll() is None:
+        rss = rss_mb(proc.pid)
+        if rss is not None:
+            samples.append((time.monotonic() - t0, rss))
+        time.sleep(5.0)
+    reader.join(10)
+    if proc.returncode != 0:
+        print(f"service exited with {proc.returncode}", file=sys.stderr)
+        return 1
+    metrics = json.loads((args.out / "run" / "metrics.json").read_text())
+    periods = metrics["periods"]
+    t_first = periods[0]["t_s"] if periods else 0.0
+    per_minute: dict[int, list[dict]] = {}
+    for p in periods:
+        per_minute.setdefault(int((p["t_s"] - t_first) // 60), []).append(p)
+    table = []
+    for minute, ps in sorted(per_minute.items()):
+        def worst(key: str) -> float | None:
+            vals = [p[key] for p in ps if p[key] is not None]
+            return max(vals) if vals else None
+        table.append({"minute": minute, "hz": sum(p["hz"] for p in ps) / len(ps),
+                      "ms_p50": worst("ms_median"), "ms_p95": worst("ms_p95"),
+                      "ms_p99": worst("ms_p99"), "dropped_total": ps[-1]["dropped"]})
+    # RSS "at start": once the first statistics period is done (imports,
+    # first key frames, zenoh session and thread stacks all in place).
+    warm = next((r for t, r in samples if t >= 15.0), samples[0][1] if samples else None)
+    report = {
+        "minutes": args.minutes,
+        "frames": metrics["frames"],
+        "frames_dropped": metrics["frames_dropped"],
+        "frame_hz": metrics["frame_hz"],
+        "frame_ms_median": metrics["frame_ms_median"],
+        "frame_ms_p95": metrics["frame_ms_p95"],
+        "frame_ms_p99": metrics["frame_ms_p99"],
+        "rss_start_mb": warm,
+        "rss_end_mb": samples[-1][1] if samples else None,
+        "rss_growth_mb": (samples[-1][1] - warm) if samples and warm else None,
+        "rss_samples": samples,
+        "per_minute": table,
+    }
+    (args.out / "soak.json").write_text(json.dumps(report, indent=2) + "\n")
+    print(f"\nsoak: {args.minutes:g} min, {metrics['frames']} frames at "
+          f"{metrics['frame_hz']:.1f} Hz, dropped {metrics['frames_dropped']}")
+    print(f"RSS {warm:.1f} MB after 15 s -> {samples[-1][1]:.1f} MB at the end "
+          f"({report['rss_growth_mb']:+.1f} MB)")
+    print("minute   Hz   p50 ms  p95 ms  p99 ms  dropped (worst period of the minute)")
+    for row in table:
+        print(f"{row['minute']:>6} {row['hz']:5.1f} {row['ms_p50']:7.1f} {row['ms_p95']:7.1f} "
+              f"{row['ms_p99']:7.1f} {row['dropped_total']:8d}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""The onboard health state machine (onboard/health.py), step by step."""
+
+from __future__ import annotations
+
+from fake_results import track_result
+
+from onboard.frames import TrackState
+from onboard.health import Health, HealthMonitor, HealthThresholds
+
+TH = HealthThresholds(frame_timeout_s=0.5, degraded_gap_s=0.2, degraded_quality=20,
+                      start_grace_s=10.0)
+
+
+def test_starting_then_tracking_and_the_first_report_is_announced() -> None:
+    h = HealthMonitor(TH, start_s=0.0)
+    first = h.on_idle(1.0)
+    assert (first.state, first.changed) == (Health.STARTING, True)
+    assert h.on_idle(2.0).changed is False
+    r = h.on_frame(2.1, track_result(0.0, trusted=False, state=TrackState.INITIALIZING,
+                                     lost_reason="no attitude"), None)
+    assert r.state is Health.STARTING and "no attitude" in r.reason
+    r = h.on_frame(2.13, track_result(0.03, quality=60), None)
+    assert (r.state, r.changed) == (Health.TRACKING, True)
+
+
+def test_no_camera_at_start_is_lost_after_the_grace_period() -> None:
+    h = HealthMonitor(TH, start_s=0.0)
+    assert h.on_idle(9.9).state is Health.STARTING
+    r = h.on_idle(10.1)
+    assert r.state is Health.LOST and "no frames from the camera" in r.reason
+
+
+def test_frames_stopping_is_lost_and_coming_back_is_tracking() -> None:
+    h = HealthMonitor(TH, start_s=0.0)
+    h.on_frame(1.0, track_result(1.0), None)
+    assert h.on_idle(1.4).state is Health.TRACKING  # within frame_timeout_s
+    r = h.on_idle(1.6)
+    assert r.state is Health.LOST and "no frames for 0.6 s" == r.reason
+    # The first frame after the silence arrives after a long gap: degraded, then fine.
+    r = h.on_frame(2.0, track_result(2.0), None)
+    assert r.state is Health.DEGRADED and "frame gap" in r.reason
+    assert h.on_frame(2.033, track_result(2.033), None).state is Health.TRACKING
+
+
+def test_untrusted_after_a_pose_is_lost() -> None:
+    h = HealthMonitor(TH, start_s=0.0)
+    h.on_frame(1.0, track_result(1.0), None)
+    r = h.on_frame(1.03, track_result(1.03, trusted=False, lost_reason="correlation peak too weak"),
+                   None)
+    assert (r.state, r.reason) == (Health.LOST, "correlation peak too weak")
+
+
+def test_low_quality_and_fallback_are_degraded_with_hysteresis() -> None:
+    h = HealthMonitor(TH, start_s=0.0)
+    t = 1.0
+    states = []
+    for q in (60, 15, 22, 26, 60):
+        states.append(h.on_frame(t, track_result(t, quality=q), None).state)
+        t += 0.033
+    assert states == [Health.TRACKING, Health.DEGRADED, Health.DEGRADED, Health.TRACKING,
+                      Health.TRACKING]
+    r = h.on_frame(t, track_result(t, quality=80), "fastorb")
+    assert r.state is Health.DEGRADED and "fallback tracker fastorb" in r.reason

@@ -1,0 +1,298 @@
+"""The onboard service end to end (hardware-in-the-loop replay): `nislam run
+--replay` on synthetic flights as a subprocess, a pymavlink peer in another
+process (tests/mavlink_peer.py) and a zenoh subscriber in this one, all on
+127.0.0.1; and the systemd notify/watchdog protocol under a fake NOTIFY_SOCKET."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+from subproc import REPO, JsonLinesProcess, free_port, python_script
+
+from onboard.config import ZenohConfig, load_config
+from onboard.evaluation import umeyama_se3
+from onboard.frames import CameraIntrinsics
+from onboard.sdnotify import Notifier
+from onboard.service import Service, replay_sources
+from onboard.trackers import make_tracker
+from onboard.zenoh_out import session_config
+from sim_replay.faults import inject_faults
+from sim_replay.sim import SimOptions, simulate
+from sim_replay.tum import open_sequence
+
+NISLAM = REPO / ".venv" / "bin" / "nislam"
+PEER = REPO / "tests" / "mavlink_peer.py"
+GAP_AT_S, GAP_S = 2.0, 1.0  # the attitude gap of the damaged flight
+LOST, DEGRADED, ACTIVE, STANDBY = 8, 5, 4, 3  # HEARTBEAT system_status
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A clean 8 s orbit and a damaged copy: a 1 s attitude gap at 2 s, two
+    dropped frames and a corrupt depth image."""
+    root = tmp_path_factory.mktemp("flights")
+    clean = root / "circle"
+    simulate("circle", clean, SimOptions(seconds=8.0, width=320, height=240), progress=False)
+    damaged = root / "circle_faults"
+    inject_faults(clean, damaged, f"att-gap:{GAP_S}@{GAP_AT_S},drop:2,corrupt:1", seed=1)
+    return {"clean": clean, "damaged": damaged}
+
+
+class StatusSubscriber:
+    """A zenoh session listening on 127.0.0.1 that the service connects to;
+    collects `nislam/<vehicle>/status` messages."""
+
+    def __init__(self, vehicle: str) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+        self.session = zenoh.open(session_config(ZenohConfig(listen=(self.endpoint,))))
+        self.statuses: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        self._sub = self.session.declare_subscriber(f"nislam/{vehicle}/status", self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.statuses.append(json.loads(sample.payload.to_bytes()))
+
+    def states(self) -> list[str]:
+        with self._lock:
+            return [s["state"] for s in self.statuses]
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
+
+
+def start_service(seq: Path, out: Path, mav_port: int, zenoh_ep: str, *extra: str
+                  ) -> JsonLinesProcess:
+    cfg = out.parent / f"{out.name}.toml"
+    cfg.write_text("[service]\nstats_period_s = 0.5\n" + "".join(extra))
+    return JsonLinesProcess([
+        str(NISLAM), "run", "--replay", str(seq), "--config", str(cfg), "--out", str(out),
+        "--mavlink", f"udpout:127.0.0.1:{mav_port}", "--zenoh-connect", zenoh_ep,
+        "--vehicle", "hil",
+    ])
+
+
+def run_with_peers(seq: Path, out: Path, *extra: str, sigterm_after_poses: int | None = None
+                   ) -> tuple[int, list[dict], list[str], JsonLinesProcess]:
+    """Run the service on `seq` until it ends (or SIGTERM after that many
+    poses); returns (exit code, MAVLink messages, zenoh status states, process)."""
+    port = free_port()
+    peer = JsonLinesProcess(python_script(PEER, f"udpin:127.0.0.1:{port}"))
+    peer.wait_for(lambda lines: any(m.get("ready") for m in lines), 60, "peer ready")
+    sub = StatusSubscriber("hil")
+    svc = start_service(seq, out, port, sub.endpoint, *extra)
+    try:
+        if sigterm_after_poses is not None:
+            peer.wait_for(lambda ls: sum(m.get("mavpackettype") == "ODOMETRY" for m in ls)
+                          >= sigterm_after_poses, 120, "poses")
+            assert svc.proc.poll() is None, "the flight ended before SIGTERM"
+            rc = svc.stop()
+        else:
+            rc = svc.proc.wait(120)
+    finally:
+        svc.stop()
+        peer.stop()
+        states = sub.states()
+        sub.close()
+    msgs = [m for m in peer.lines if "mavpackettype" in m and m.get("src_component") == 197]
+    return rc, msgs, states, svc
+
+
+def of(msgs: list[dict], kind: str) -> list[dict]:
+    return [m for m in msgs if m["mavpackettype"] == kind]
+
+
+def ate_of_odometry(odometry: list[dict], seq_dir: Path) -> float:
+    """ATE RMSE (SE(3)-aligned) of the ODOMETRY positions against ground truth."""
+    gt = open_sequence(seq_dir).groundtruth
+    assert gt is not None
+    t = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    p_est = np.array([[m["x"], m["y"], m["z"]] for m in odometry])
+    p_gt, _, valid = gt.interpolate(t, 0.2)
+    assert valid.all()
+    R, tr = umeyama_se3(p_est, p_gt)
+    return float(np.sqrt(np.mean(np.sum((p_est @ R.T + tr - p_gt) ** 2, axis=1))))
+
+
+def gap_window(seq_dir: Path) -> tuple[float, float]:
+    manifest = json.loads((seq_dir / "faults.json").read_text())
+    gap = next(f for f in manifest["faults"] if f["kind"] == "att-gap")
+    return gap["stamps"][0], gap["until"][0]
+
+
+# --------------------------------------------------------------------------- HIL replay
+
+
+def test_service_feeds_the_autopilot_and_stops_cleanly_on_sigterm(
+        flights: dict[str, Path], tmp_path: Path) -> None:
+    rc, msgs, states, svc = run_with_peers(flights["clean"], tmp_path / "out",
+                                           sigterm_after_poses=40)
+    assert rc == 0, svc.stderr[-2000:]
+    odometry = of(msgs, "ODOMETRY")
+    assert len(odometry) >= 40
+    ate = ate_of_odometry(odometry, flights["clean"])
+    print(f"ATE of the poses received over MAVLink: {ate * 1e3:.1f} mm ({len(odometry)} poses)")
+    assert ate < 0.02
+    assert all(m["reset_counter"] == 0 for m in odometry)
+    # starting, then tracking: over MAVLink (heartbeat and status texts) and zenoh.
+    status = [m["system_status"] for m in of(msgs, "HEARTBEAT")]
+    assert STANDBY in status and ACTIVE in status
+    assert status.index(STANDBY) < status.index(ACTIVE) and LOST not in status
+    texts = [m["text"] for m in of(msgs, "STATUSTEXT")]
+    starting = next(i for i, t in enumerate(texts) if "starting" in t)
+    assert any("tracking" in t for t in texts[starting + 1:]), texts
+    assert "tracking" in states and "lost" not in states
+    assert set(states) <= {"starting", "tracking"}
+    if "starting" in states:  # published before the subscriber was matched, or not
+        assert states.index("starting") < states.index("tracking")
+    # SIGTERM: the frame finished, outputs flushed, results written, summary printed.
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["frames_tracked"] >= len(odometry)
+    assert any(line.startswith("ATE RMSE") for line in svc.text), svc.text
+    assert any("Hz" in line and "key frames" in line for line in svc.text)  # statistics lines
+
+
+def test_service_survives_a_damaged_flight_and_never_sends_an_untrusted_pose(
+        flights: dict[str, Path], tmp_path: Path) -> None:
+    seq = flights["damaged"]
+    rc, msgs, states, svc = run_with_peers(seq, tmp_path / "out")
+    assert rc == 0, svc.stderr[-2000:]
+    odometry = of(msgs, "ODOMETRY")
+    t0, t1 = gap_window(seq)
+    times = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    # No attitude, no NI-SLAM pose: nothing is sent for the frames inside the gap.
+    assert not np.any((times > t0 + 0.05) & (times < t1 - 0.05))
+    before = [m["reset_counter"] for m, t in zip(odometry, times) if t < t0]
+    after = [m["reset_counter"] for m, t in zip(odometry, times) if t > t1]
+    assert before and after and set(before) == {0} and min(after) >= 1
+    assert LOST in [m["system_status"] for m in of(msgs, "HEARTBEAT")]
+    assert "lost" in states and states[-1] == "tracking", states
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["lost_reasons"].get("no attitude", 0) >= 20
+    expected = json.loads((seq / "faults.json").read_text())["expected"]
+    for key, n in expected.items():  # what the reader skipped is counted and reported
+        assert metrics["skipped"][key] >= n, (key, metrics["skipped"])
+
+
+def test_fallback_tracker_keeps_the_feed_through_an_attitude_gap(
+        flights: dict[str, Path], tmp_path: Path) -> None:
+    seq = flights["damaged"]
+    rc, msgs, states, svc = run_with_peers(seq, tmp_path / "out",
+                                           'fallback_tracker = "fastorb"\n')
+    assert rc == 0, svc.stderr[-2000:]
+    odometry = of(msgs, "ODOMETRY")
+    t0, t1 = gap_window(seq)
+    times = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    inside = (times > t0 + 0.05) & (times < t1 - 0.05)
+    assert inside.sum() >= 20  # FastORB posed the frames NI-SLAM could not
+    counters = [m["reset_counter"] for m in odometry]
+    assert counters == sorted(counters) and counters[-1] == 2  # out and back
+    assert DEGRADED in [m["system_status"] for m in of(msgs, "HEARTBEAT")]
+    assert "degraded" in states and "lost" not in states
+    ate = ate_of_odometry(odometry, seq)
+    print(f"ATE through the gap with the fallback: {ate * 1e3:.1f} mm")
+    assert ate < 0.05
+
+
+# --------------------------------------------------------------------------- systemd notify
+
+
+class StallingTracker:
+    """A real tracker whose `track()` blocks on `release` from frame `at` on."""
+
+    def __init__(self, inner: Any, at: int, release: threading.Event) -> None:
+        self.inner, self.at, self.name = inner, at, inner.name
+        self.frames = 0
+        self.stalled = threading.Event()
+        self.release = release
+        self.t_s: list[float] = []
+
+    def track(self, frame: Any, attitude: Any) -> Any:
+        self.frames += 1
+        self.t_s.append(frame.t_s)
+        if self.frames == self.at:
+            self.stalled.set()
+            self.release.wait(30)
+        return self.inner.track(frame, attitude)
+
+    def finish(self) -> Any:
+        return self.inner.finish()
+
+
+def recv_all(sock: socket.socket, timeout_s: float) -> list[str]:
+    """Datagrams arriving within `timeout_s` (a window of observation)."""
+    sock.settimeout(timeout_s)
+    out = []
+    try:
+        while True:
+            out.append(sock.recv(4096).decode())
+    except TimeoutError:
+        return out
+
+
+def wait_message(sock: socket.socket, prefix: str, timeout_s: float = 30.0) -> list[str]:
+    sock.settimeout(timeout_s)
+    seen = []
+    while True:
+        seen.append(sock.recv(4096).decode())
+        if seen[-1].startswith(prefix):
+            return seen
+
+
+def test_ready_and_watchdog_pings_come_from_the_loop_and_stop_when_it_stalls(
+        flights: dict[str, Path], tmp_path: Path) -> None:
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    period_s = 0.4  # pings every 0.2 s
+    notifier = Notifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": str(int(period_s * 1e6))})
+    cfg = load_config()
+    sources, cfg = replay_sources(cfg, flights["clean"])
+    holder: dict[str, StallingTracker] = {}
+    release = threading.Event()
+
+    def factory(name: str, intr: CameraIntrinsics, c: Any) -> StallingTracker:
+        holder["t"] = StallingTracker(make_tracker(name, intr, c), at=30, release=release)
+        return holder["t"]
+
+    stop = threading.Event()
+    service = Service(cfg, sources, stop, notifier=notifier, tracker_factory=factory)
+    thread = threading.Thread(target=service.run, daemon=True)
+    thread.start()
+    try:
+        before_ready = wait_message(sock, "READY=1")
+        assert any(m == "WATCHDOG=1" for m in before_ready)  # the loop pings while it waits
+        pings = [m for m in wait_message(sock, "WATCHDOG=1") if m == "WATCHDOG=1"]
+        assert pings
+        tracker = holder["t"]
+        assert tracker.stalled.wait(30)
+        recv_all(sock, 0.05)  # a ping sent just before the stall
+        silent = recv_all(sock, 3 * period_s)
+        assert "WATCHDOG=1" not in silent  # a hung loop stops pinging: systemd restarts it
+        frames_at_stall = tracker.frames
+        release.set()
+        wait_message(sock, "WATCHDOG=1", 10)  # the loop turns again: pings resume
+        # The frames that came during the stall were dropped, not queued: the
+        # next one tracked is the newest.
+        assert service.stats.frames >= frames_at_stall - 1
+        tracker_t = tracker.t_s
+        while len(tracker_t) <= frames_at_stall:
+            wait_message(sock, "WATCHDOG=1", 10)
+        assert tracker_t[frames_at_stall] - tracker_t[frames_at_stall - 1] > 1.0
+        assert sources.camera.slot.stats.dropped >= 20
+    finally:
+        release.set()
+        stop.set()
+        thread.join(30)
+    assert not thread.is_alive()
+    rest = recv_all(sock, 0.5)
+    assert "STOPPING=1" in rest
+    sock.close()
