@@ -10,9 +10,13 @@ anything else -> logged traceback and exit 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -255,6 +259,20 @@ def cmd_bench(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- nislam run
 
 
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[threading.Event]:
+    """An Event that SIGINT and SIGTERM set (the long-running commands stop
+    cleanly on either); the previous handlers come back afterwards."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
     rn = sub.add_parser(
         "run", parents=[verbose], help="the onboard service: sensors -> tracker -> MAVLink/zenoh",
@@ -307,9 +325,6 @@ def _run_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-
     from onboard.config import load_config
     from onboard.sdnotify import Notifier
     from onboard.service import Service, hardware_sources, replay_sources
@@ -337,16 +352,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         sources, cfg = replay_sources(cfg, args.replay, loop_s)
     else:
         sources = hardware_sources(cfg)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with _stop_on_signals() as stop:
         service = Service(cfg, sources, stop, seconds=seconds, notifier=Notifier(),
                           emit=lambda line: print(line, flush=True), out_dir=out_dir)
         result = service.run()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     print("\n".join(result.summary_lines()), flush=True)
     return 0
 
@@ -379,9 +388,6 @@ def _add_listen_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
 
 
 def cmd_listen(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-
     from onboard.config import load_config
     from onboard.listen import listen
 
@@ -391,15 +397,9 @@ def cmd_listen(args: argparse.Namespace) -> int:
         if getattr(args, flag) is not None:
             overrides[key] = getattr(args, flag)
     cfg = load_config(args.config, overrides, overrides_origin="command line")
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with _stop_on_signals() as stop:
         result = listen(cfg.zenoh, stop, args.out, emit=lambda line: print(line, flush=True),
                         json_lines=args.json, pose_hz=args.pose_hz)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     log.info("received %d poses and %d status messages", result.poses, result.statuses)
     return 0
 
@@ -426,23 +426,14 @@ def _add_record_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-
     from drivers.recorder import record
     from onboard.config import load_config
 
     if args.seconds is not None and not args.seconds > 0:
         raise NislamError(f"--seconds must be > 0, got {args.seconds}")
     cfg = load_config(args.config)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with _stop_on_signals() as stop:
         result = record(cfg, args.out, seconds=args.seconds, replay_dir=args.replay, stop=stop)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     print("\n".join(result.summary_lines()), flush=True)
     return 0
 

@@ -25,8 +25,7 @@ from onboard import NislamError
 from onboard.bench import attitude_error_model, frame_time_stats, pin_one_core
 from onboard.config import Config, config_to_toml
 from onboard.evaluation import TrajectoryMetrics, evaluate, ground_truth_at, plot_trajectory
-from onboard.frames import AttitudeSource
-from onboard.frames import KeyframeCloud
+from onboard.frames import AttitudeSource, KeyframeCloud
 from onboard.ply import write_ply
 from onboard.trackers import Tracker, make_tracker
 from onboard.trajectory import Trajectory, write_tum

@@ -33,20 +33,27 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from onboard import NislamError
+from drivers.attitude import AttitudeBuffer
+from drivers.camera import CameraSource
 from onboard.bench import pin_one_core
 from onboard.config import Config, config_to_toml
 from onboard.fallback import SwitchingTracker
-from drivers.attitude import AttitudeBuffer
 from onboard.frames import CameraIntrinsics, TrackResult
 from onboard.health import Health, HealthMonitor, HealthReport, HealthThresholds
 from onboard.outputs import Output, make_outputs
-from onboard.replay import CONFIG_FILE, METRICS_FILE, TRAJECTORY_FILE, TrackLog, evaluate_track
-from onboard.replay import write_text_atomic, write_trajectories
+from onboard.replay import (
+    CONFIG_FILE,
+    METRICS_FILE,
+    TRAJECTORY_FILE,
+    TrackLog,
+    evaluate_track,
+    write_text_atomic,
+    write_trajectories,
+)
 from onboard.sdnotify import Notifier
 from onboard.trackers import Tracker, make_tracker
 from onboard.trajectory import write_tum
@@ -58,15 +65,6 @@ ATTITUDE_MARGIN_S = 0.005  # beyond the sample needed: interpolation brackets it
 TrackerFactory = Callable[[str, CameraIntrinsics, Config], Tracker]
 
 
-class CameraSource(Protocol):  # drivers.camera.CameraSource, the part the loop uses
-    def wait_camera(self, timeout_s: float) -> Any: ...
-
-    def take(self, after_seq: int = 0, timeout_s: float = 0.0) -> Any: ...
-
-    @property
-    def exhausted(self) -> bool: ...
-
-
 @dataclass
 class Sources:
     """What the loop reads: a camera, the attitude buffer, and the object that
@@ -75,12 +73,13 @@ class Sources:
     truth for the final score), None on hardware."""
 
     label: str
-    camera: Any  # CameraSource
+    camera: CameraSource
     attitude: AttitudeBuffer
     runner: Any  # .start(), .stop(timeout_s) -> bool, .stop_times_s
     link: Any = None  # drivers.fc_link.FcLink shared with the MAVLink output
     sequence: Any = None  # sim_replay.tum.Sequence
     attitude_label: str = ""
+    looped: bool = False  # a replay played back and forth: its poses map to no ground truth
 
     def start(self) -> None:
         self.runner.start()
@@ -90,11 +89,12 @@ class Sources:
         return dict(self.runner.stop_times_s)
 
 
-def hardware_sources(cfg: Config) -> Sources:
-    """The OAK-D and the configured AHRS (drivers.hardware.make_hardware)."""
+def hardware_sources(cfg: Config, **make_kwargs: Any) -> Sources:
+    """The OAK-D and the configured AHRS (drivers.hardware.make_hardware;
+    `make_kwargs` go to it, e.g. a stand-in depthai for tests)."""
     from drivers.hardware import make_hardware
 
-    hw = make_hardware(cfg, camera=True)
+    hw = make_hardware(cfg, camera=True, **make_kwargs)
     assert hw.camera is not None
     return Sources("OAK-D", hw.camera, hw.buffer, hw, link=hw.link,
                    attitude_label=hw.attitude_label)
@@ -124,7 +124,7 @@ def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
     cfg = dataclasses.replace(cfg, mavlink=mav)
     label = f"replay of {rp.seq.path}" + (f" ({passes} passes)" if passes > 1 else "")
     return Sources(label, rp.camera, rp.buffer, rp, sequence=rp.seq if passes == 1 else None,
-                   attitude_label=rp.attitude_label), cfg
+                   attitude_label=rp.attitude_label, looped=passes > 1), cfg
 
 
 # --------------------------------------------------------------------------- statistics
@@ -257,8 +257,8 @@ class Service:
         self._outputs = outputs
         self.stats = LoopStats()
         # Trusted poses are kept only to be scored or written: a service on
-        # hardware without --out keeps nothing that grows.
-        keep = sources.sequence is not None or out_dir is not None
+        # hardware without --out (or a looped soak) keeps nothing that grows.
+        keep = sources.sequence is not None or (out_dir is not None and not sources.looped)
         self.track_log: TrackLog | None = TrackLog() if keep else None
         self.tracker: SwitchingTracker | None = None
         self.health = HealthMonitor(HealthThresholds(
@@ -492,8 +492,3 @@ def _jsonable(v: Any) -> Any:
     if isinstance(v, np.integer):
         return int(v)
     return v
-
-
-def check_source_args(replay: Path | None, sim: str | None) -> None:
-    if replay is not None and sim is not None:
-        raise NislamError("--replay and --sim exclude each other")

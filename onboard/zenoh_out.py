@@ -242,6 +242,7 @@ class ZenohOutput:
         self._map: OrderedDict[int, tuple[bytes, int]] = OrderedDict()  # id -> (message, points)
         self._map_bytes = 0
         self._map_points = 0
+        self._evicted = 0  # key frames forgotten because of map_max_mb
         self._queryable = s.declare_queryable(f"{self.prefix}/map/**", self._on_query)
         self._start = clock()
         self._seq = 0
@@ -308,6 +309,7 @@ class ZenohOutput:
             "poses_published": self._seq,
             "dropped_poses": self._pose_worker.dropped,
             "dropped_keyframes": self._map_worker.dropped,
+            "evicted_keyframes": self._evicted,
             "errors": self._pose_worker.errors + self._map_worker.errors,
         }
 
@@ -396,8 +398,11 @@ class ZenohOutput:
                 self._map_points -= n
                 evicted += 1
         if evicted:
-            log.warning("map above %.0f MB: forgot the %d oldest key frames for late joiners",
-                        self.cfg.map_max_mb, evicted)
+            # Once at warning level: from then on the cap is the normal state.
+            level = logging.DEBUG if self._evicted else logging.WARNING
+            log.log(level, "map above %.0f MB: forgot the %d oldest key frames for late joiners "
+                    "(further evictions are logged at debug level)", self.cfg.map_max_mb, evicted)
+            self._evicted += evicted
 
     def _on_query(self, query: zenoh.Query) -> None:
         """Every key frame held whose key matches the query, one reply each."""

@@ -43,6 +43,12 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
+def worst(periods: list[dict], key: str) -> float | None:
+    """The largest value of `key` over statistics periods (None: no frames)."""
+    vals = [p[key] for p in periods if p[key] is not None]
+    return max(vals) if vals else None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0)
@@ -96,12 +102,9 @@ def main() -> int:
         per_minute.setdefault(int((p["t_s"] - t_first) // 60), []).append(p)
     table = []
     for minute, ps in sorted(per_minute.items()):
-        def worst(key: str) -> float | None:
-            vals = [p[key] for p in ps if p[key] is not None]
-            return max(vals) if vals else None
         table.append({"minute": minute, "hz": sum(p["hz"] for p in ps) / len(ps),
-                      "ms_p50": worst("ms_median"), "ms_p95": worst("ms_p95"),
-                      "ms_p99": worst("ms_p99"), "dropped_total": ps[-1]["dropped"]})
+                      "ms_p50": worst(ps, "ms_median"), "ms_p95": worst(ps, "ms_p95"),
+                      "ms_p99": worst(ps, "ms_p99"), "dropped_total": ps[-1]["dropped"]})
     # RSS "at start": once the first statistics period is done (imports,
     # first key frames, zenoh session and thread stacks all in place).
     warm = next((r for t, r in samples if t >= 15.0), samples[0][1] if samples else None)

@@ -296,3 +296,65 @@ def test_ready_and_watchdog_pings_come_from_the_loop_and_stop_when_it_stalls(
     rest = recv_all(sock, 0.5)
     assert "STOPPING=1" in rest
     sock.close()
+
+
+# --------------------------------------------------------------------------- live path
+
+
+def test_service_on_stand_in_hardware(tmp_path: Path) -> None:
+    """The hardware path of `nislam run`: a stand-in OAK-D (fake depthai, the
+    real driver code) and a simulated myAHRS+ process behind a pty, through
+    make_hardware; the loop builds the tracker from the device's intrinsics,
+    tracks what arrives and stops both drivers."""
+    from peers.fake_depthai import FakeDai
+    from test_myahrs import DeviceProcess
+
+    from onboard.service import hardware_sources
+
+    link = tmp_path / "myahrs"
+    dev = DeviceProcess(link)
+    try:
+        dev.expect("plugged")
+        cfg = load_config(None, {"myahrs.port": str(link), "oak.width": 64, "oak.height": 40,
+                                 "ahrs.source": "myahrs", "service.stats_period_s": 0.5})
+        sources = hardware_sources(cfg, dai_loader=FakeDai)
+        lines: list[str] = []
+        service = Service(cfg, sources, threading.Event(), seconds=2.0, emit=lines.append)
+        result = service.run()
+    finally:
+        dev.close()
+    m = result.metrics
+    assert m["source"] == "OAK-D" and m["attitude_source"] == "myahrs"
+    assert m["frames"] >= 10 and service.ready
+    assert set(m["stop_times_s"]) == {"oak", f"myahrs:{link}"}
+    assert lines and all("Hz" in line for line in lines)
+    assert "ate_rmse_m" not in m  # no ground truth on hardware
+
+
+def test_run_refuses_a_bad_config_with_one_line(tmp_path: Path) -> None:
+    import subprocess
+
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text('[service]\nfallback_tracker = "nislam"\n')
+    proc = subprocess.run([str(NISLAM), "run", "--config", str(cfg), "--sim", "hover"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert proc.stderr.count("\n") == 1 and "service.fallback_tracker" in proc.stderr
+    proc = subprocess.run([str(NISLAM), "run", "--loop", "--sim", "hover"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and "--loop needs --seconds" in proc.stderr
+
+
+def test_run_sim_is_the_main_job(tmp_path: Path) -> None:
+    """`nislam run --sim`: a flight rendered on the fly, replayed through the
+    service, scored at the end (the README's main job, shortened)."""
+    import subprocess
+
+    out = tmp_path / "run"
+    proc = subprocess.run([str(NISLAM), "run", "--sim", "hover", "--seconds", "2", "--out",
+                           str(out)], capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "ATE RMSE" in proc.stdout and (out / "flight" / "rgb.txt").exists()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames_tracked"] >= 30 and metrics["ate_rmse_m"] < 0.01
+    assert (out / "trajectory.tum").exists() and (out / "config.toml").exists()
