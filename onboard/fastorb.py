@@ -14,7 +14,8 @@ Per frame (Sec. III "Tracking", Sec. IV; parts in fastorb_*.py):
   4. grid motion statistics, then RANSAC on the fundamental matrix (IV-D),
   5. landmarks of nearby key frames that came back into view are followed
      by LK from their key frame's image (descriptor-free map tracking),
-  6. PnP + RANSAC on landmark/pixel pairs, robust refinement,
+  6. PnP + RANSAC on landmark/pixel pairs, robust refinement with the
+     depth at the tracked pixels as a disparity residual (ORB-SLAM2 RGB-D),
   7. a key frame by the paper's rules (ORB with descriptors, matched to the
      local map of nearby key frames, which also re-poses the frame); the same
      when tracking thins out below local_map_min_inliers; below
@@ -103,7 +104,7 @@ class FastOrbParams:
     pnp_reprojection_px: float = 3.0  # RANSAC inlier threshold
     pnp_iterations: int = 100
     pnp_confidence: float = 0.99
-    pnp_huber_px: float = 1.0  # Huber-weighted Gauss-Newton [px]; 0 (and rgbd_bf_px 0): cv2.solvePnPRefineLM
+    pnp_huber_px: float = 1.0  # Huber-weighted Gauss-Newton [px]; 0 with rgbd_bf_px 0: LM
     rgbd_bf_px: float = 40.0  # disparity residual bf / z (ORB-SLAM2 TUM: 40); 0: pixels only
     rgbd_max_depth_m: float = 3.0  # ... for points closer than this (ORB-SLAM2: 40 b = 3.1 m)
     pnp_sigma_gate: float = 3.0  # final inliers within this many robust sigmas ...
@@ -112,13 +113,13 @@ class FastOrbParams:
     max_jump_deg: float = 15.0  # ... or turned this far from it is not believed
     max_coast_frames: int = 3  # frames without a believed pose before lost
     # Landmarks from depth
-    landmark_max_sd_m: float = 1e9  # no new landmarks from a pose less certain than this
+    landmark_max_sd_m: float = 0.002  # no new landmarks from a pose with a larger position sd
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
     depth_edge_rel: float = 0.05  # 4x4 depth spread above this share of the depth: no landmark
     min_point_distance_px: float = 8.0  # new keypoints keep this far from followed ones
     # Descriptor-free local-map tracking
-    map_track_every: int = 1  # every n-th frame
+    map_track_every: int = 2  # every n-th frame
     map_track_keyframes: int = 2  # from the n key frames nearest in view (one LK call each)
     map_track_max: int = 400  # landmarks per frame at most
     map_track_radius_px: float = 10.0  # LK may move a landmark this far from its projection

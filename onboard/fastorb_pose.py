@@ -24,7 +24,7 @@ class PnpSettings:
     reprojection_px: float = 3.0  # RANSAC inlier threshold
     iterations: int = 100  # RANSAC cap (OpenCV stops earlier at `confidence`)
     confidence: float = 0.99
-    refine_iterations: int = 5  # Gauss-Newton iterations on the inliers (at most)
+    refine_iterations: int = 4  # Gauss-Newton iterations on the inliers (at most)
     huber_px: float = 1.0  # robust refinement; 0: plain cv2.solvePnPRefineLM
     sigma_gate: float = 3.0  # final inliers within this many robust sigmas; 0: reprojection_px
     min_gate_px: float = 1.5  # ... but never tighter than this
@@ -49,9 +49,10 @@ def solve_pnp(
 ) -> PnpResult | None:
     """T_cw from correspondences; None when fewer than `min_inliers` agree.
 
-    RANSAC on minimal-set AP3P hypotheses; the consensus set is then refined (robust Gauss-Newton; with huber_px = 0 and
-    no depth term, cv2.solvePnPRefineLM) and gated again. `depth_m` (N,): the
-    current frame's depth at `uv` (0: none), for the disparity residual.
+    RANSAC on minimal-set AP3P hypotheses; the consensus set is then refined
+    (robust Gauss-Newton; with huber_px = 0 and no depth term,
+    cv2.solvePnPRefineLM) and gated again. `depth_m` (N,): the current frame's
+    depth at `uv` (0: none), for the disparity residual.
     """
     if len(xyz_W) < max(min_inliers, 6):
         return None
@@ -70,7 +71,7 @@ def solve_pnp(
     res, J = _residuals(T, obj, img, disp, K, s.bf_px)
     inl = _gated(res, inl, s)
     if s.sigma_gate > 0 and inl.sum() >= min_inliers:
-        T = _refine(T, obj[inl], img[inl], disp[inl], K, s, 2)  # already close
+        T = _refine(T, obj[inl], img[inl], disp[inl], K, s, 1)  # already close
         res, J = _residuals(T, obj, img, disp, K, s.bf_px)
         inl = _gated(res, inl, s)
     if inl.sum() < min_inliers:
@@ -159,7 +160,7 @@ def refine_pose(
         except np.linalg.LinAlgError:
             break
         T = se3_exp(step) @ T
-        if float(np.abs(step).max()) < 1e-6:  # 1 um / 1 urad: converged
+        if float(np.abs(step).max()) < 1e-5:  # 10 um / 10 urad: converged
             break
     return T
 
