@@ -181,6 +181,7 @@ class LoopStats:
     period_frames: int = 0
     period_start_s: float = 0.0
     last_psr: float = float("nan")
+    period_att_lead_ms: float = float("inf")  # least AHRS lead over a frame this period
     lost_reasons: collections.Counter = field(default_factory=collections.Counter)
     health_changes: int = 0
     periods: deque[dict[str, Any]] = field(  # one per stats line, the last hour at 5 s
@@ -352,6 +353,9 @@ class Service:
         silent AHRS costs no time: the tracker reports it)."""
         att = self.sources.attitude
         newest = att.newest()
+        if newest is not None:  # how far the AHRS is ahead of the frame (negative: behind)
+            self.stats.period_att_lead_ms = min(self.stats.period_att_lead_ms,
+                                                (newest.t_s - t_s) * 1e3)
         need_s = t_s + max(0.0, self._offset_s) + ATTITUDE_MARGIN_S
         if newest is not None and 0.0 < need_s - newest.t_s <= self.sc.attitude_wait_s:
             att.wait_covered(need_s, self.sc.attitude_wait_s)
@@ -406,12 +410,14 @@ class Service:
             "keyframes": s.keyframes,
             "resets": s.resets,
             "attitude_offset_ms": self._offset_s * 1e3,
+            "attitude_lead_ms_min": s.period_att_lead_ms,
         }
         s.periods.append(period)
         line = _stats_line(period, self.tracker)
         self.emit(line)
         self.notifier.status(line)
         s.period_ms = []
+        s.period_att_lead_ms = float("inf")
         s.period_frames = 0
         s.period_start_s = now
 
@@ -479,7 +485,12 @@ def _stats_line(p: dict[str, Any], tracker: SwitchingTracker | None) -> str:
     psr = "n/a" if not np.isfinite(p["psr"]) else f"{p['psr']:.0f}"
     return (f"{p['health']:<8} {p['hz']:5.1f} Hz  {ms}  dropped {p['dropped']}  "
             f"PSR {psr}  key frames {p['keyframes']}  resets {p['resets']}  "
-            f"offset {p['attitude_offset_ms']:+.0f} ms  [{name}]")
+            f"offset {p['attitude_offset_ms']:+.0f} ms  AHRS lead {_lead(p)}  [{name}]")
+
+
+def _lead(p: dict[str, Any]) -> str:
+    lead = p["attitude_lead_ms_min"]
+    return "n/a" if not np.isfinite(lead) else f"{lead:+.0f} ms"
 
 
 def _jsonable(v: Any) -> Any:
