@@ -40,10 +40,12 @@ class HealthReport:
 
 @dataclass(frozen=True)
 class HealthThresholds:
-    frame_timeout_s: float = 0.5
-    degraded_gap_s: float = 0.2
-    degraded_quality: int = 20
-    start_grace_s: float = 10.0
+    """From [service] and [mavlink] degraded_quality (their defaults live there)."""
+
+    frame_timeout_s: float
+    degraded_gap_s: float
+    degraded_quality: int
+    start_grace_s: float
 
 
 class HealthMonitor:

@@ -26,7 +26,6 @@ import collections
 import dataclasses
 import json
 import logging
-import math
 import threading
 import time
 from collections import deque
@@ -109,16 +108,12 @@ def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
     config's [mavlink] mount is set to it."""
     from drivers.attitude import matrix_to_quat
     from sim_replay.sources import open_replay
-    from sim_replay.tum import open_sequence
 
-    passes = 1
-    if loop_s is not None:
-        t = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, False).frame_times_s
-        passes = int(math.ceil(loop_s * cfg.service.replay_speed / max(t[-1] - t[0], 1.0))) + 1
     rp = open_replay(seq_dir, speed=cfg.service.replay_speed,
                      buffer_capacity=cfg.ahrs.buffer_samples, max_age_s=cfg.ahrs.max_age_s,
                      max_gap_s=cfg.ahrs.max_gap_s, assoc_max_dt_s=cfg.replay.assoc_max_dt_s,
-                     undistort=cfg.replay.undistort, passes=passes)
+                     undistort=cfg.replay.undistort, loop_s=loop_s)
+    passes = rp.passes
     q = matrix_to_quat(rp.buffer.R_B_C)
     mav = dataclasses.replace(cfg.mavlink, mount="custom", mount_q_B_C_xyzw=tuple(q))
     cfg = dataclasses.replace(cfg, mavlink=mav)
@@ -244,7 +239,6 @@ class Service:
         emit: Emit | None = None,
         out_dir: Path | None = None,
         tracker_factory: TrackerFactory = make_tracker,
-        outputs: Output | None = None,
     ) -> None:
         self.cfg = cfg
         self.sc = cfg.service
@@ -255,7 +249,6 @@ class Service:
         self.emit = emit or (lambda line: log.info("%s", line))
         self.out_dir = out_dir
         self.tracker_factory = tracker_factory
-        self._outputs = outputs
         self.stats = LoopStats()
         # Trusted poses are kept only to be scored or written: a service on
         # hardware without --out (or a looped soak) keeps nothing that grows.
@@ -272,8 +265,7 @@ class Service:
     def run(self) -> RunResult:
         pin_one_core()
         t_start = time.monotonic()
-        outputs = self._outputs if self._outputs is not None else make_outputs(
-            self.cfg, mavlink_link=self.sources.link)
+        outputs = make_outputs(self.cfg, mavlink_link=self.sources.link)
         stop_times: dict[str, float] = {}
         self.sources.start()
         try:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from drivers.attitude import quat_slerp, quat_to_matrix
 from onboard import NislamError
 from onboard.trajectory import Trajectory
 
@@ -62,11 +63,12 @@ class AttitudeSeries:
         i = bisect.bisect_right(ts, t_s)  # 1 <= i <= n here
         if ts[i - 1] == t_s:
             # A sample is valid at its own stamp even when a long gap follows it.
-            return _quat_to_matrix(self._q_xyzw[i - 1])
+            return quat_to_matrix(self._q_xyzw[i - 1])
         t0, t1 = ts[i - 1], ts[i]
         if t1 - t0 > self.max_gap_s + _GAP_EPS_S:
             return None
-        return _quat_to_matrix(_slerp(self._q_xyzw[i - 1], self._q_xyzw[i], (t_s - t0) / (t1 - t0)))
+        w = (t_s - t0) / (t1 - t0)
+        return quat_to_matrix(quat_slerp(self._q_xyzw[i - 1], self._q_xyzw[i], w))
 
     def rotations_at(self, t_s) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised `rotation_at`: (R_W_C (M,3,3), valid (M,) bool); invalid rows are NaN."""
@@ -92,39 +94,6 @@ def _interpolate_q(traj: Trajectory, t_s, max_gap_s: float) -> tuple[np.ndarray,
         q[exact] = traj.q_xyzw[k[exact]]
         valid = valid | exact
     return q, valid
-
-
-def _slerp(
-    q0: tuple[float, float, float, float], q1: tuple[float, float, float, float], w: float
-) -> tuple[float, float, float, float]:
-    x0, y0, z0, w0 = q0
-    x1, y1, z1, w1 = q1
-    dot = x0 * x1 + y0 * y1 + z0 * z1 + w0 * w1
-    if dot < 0.0:  # q and -q are the same rotation; take the short way round
-        x1, y1, z1, w1, dot = -x1, -y1, -z1, -w1, -dot
-    if dot > 0.9999995:
-        # Under ~0.1 deg apart sin(theta) loses precision; normalised lerp is exact enough.
-        a, b = 1.0 - w, w
-    else:
-        theta = math.acos(dot)
-        s = math.sin(theta)
-        a, b = math.sin((1.0 - w) * theta) / s, math.sin(w * theta) / s
-    x, y, z, ww = a * x0 + b * x1, a * y0 + b * y1, a * z0 + b * z1, a * w0 + b * w1
-    norm = math.sqrt(x * x + y * y + z * z + ww * ww)
-    return x / norm, y / norm, z / norm, ww / norm
-
-
-def _quat_to_matrix(q_xyzw: tuple[float, float, float, float]) -> np.ndarray:
-    x, y, z, w = q_xyzw
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-    return np.array(
-        [
-            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
-            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
-            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
-        ]
-    )
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ through the same interfaces as the hardware drivers.
   sequence has one, else ground truth (the camera's own orientation, mount
   identity, as replays of TUM data do).
 
-`open_replay(seq_dir, ...)` builds the three on one clock. With `passes` > 1
+`open_replay(seq_dir, ...)` builds the three on one clock. With `loop_s`
 the recording plays forwards, backwards, forwards, ... (`pingpong_schedule`):
 the camera's path stays continuous at every turn, so a soak test can run for
 as long as it likes on one recording.
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -202,6 +203,7 @@ class Replay:
     attitude: ReplayAttitude | None
     buffer: AttitudeBuffer
     attitude_label: str
+    passes: int = 1  # forwards/backwards passes (loop_s)
     stop_times_s: dict[str, float] = field(default_factory=dict)
 
     def start(self) -> None:
@@ -230,16 +232,17 @@ def open_replay(
     assoc_max_dt_s: float = 0.02,
     undistort: bool = True,
     mono_ns: Callable[[], int] = time.monotonic_ns,
-    passes: int = 1,
+    loop_s: float | None = None,
 ) -> Replay:
     """Replay drivers for a TUM-layout sequence; attitude within PREROLL_S
-    before the first frame to TAIL_S after the last is played. `passes` > 1:
-    forwards and backwards in turn (pingpong_schedule), frames and attitude
-    mirrored alike."""
-    if passes < 1:
-        raise ValueError("passes must be >= 1")
+    before the first frame to TAIL_S after the last is played. With `loop_s`:
+    forwards and backwards in turn (pingpong_schedule) for at least that long
+    at `speed`, frames and attitude mirrored alike."""
     seq = open_sequence(seq_dir, assoc_max_dt_s, undistort)
     t_first, t_last = float(seq.frame_times_s[0]), float(seq.frame_times_s[-1])
+    passes = 1
+    if loop_s is not None:
+        passes = int(math.ceil(loop_s * speed / max(t_last - t_first, 1.0))) + 1
     # Mirrored passes turn half a frame interval beyond the first and last
     # frames, so attitude brackets every frame at the turns too.
     half_s = 0.5 * float(np.median(np.diff(seq.frame_times_s))) if len(seq) > 1 else 0.017
@@ -266,4 +269,4 @@ def open_replay(
         attitude = ReplayAttitude(t_att, q_att, clock, buffer.push)
     schedule = pingpong_schedule(seq.frame_times_s, passes, span, 0.0) if passes > 1 else None
     camera = ReplayCamera(seq, clock, delivered_camera(seq.camera, undistort), schedule=schedule)
-    return Replay(seq, clock, camera, attitude, buffer, label)
+    return Replay(seq, clock, camera, attitude, buffer, label, passes)
