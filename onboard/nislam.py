@@ -32,6 +32,7 @@ from onboard.frames import (
     TrackResult,
     TrackState,
 )
+from onboard import kernels as kern
 from onboard.geometry import so3_log
 from onboard.projection import AxonometricImage, Cloud, adaptive_resolution, make_cloud, project
 
@@ -254,6 +255,7 @@ class NislamTracker:
         self._calib = _OffsetCalibration(
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
+        kern.warm_up()  # compile before the first frame, not during it
 
     # ------------------------------------------------------------------ API
     @property
@@ -374,37 +376,22 @@ class NislamTracker:
         depth gate is centred on the median rather than the previous t_z, which
         lets fast z motion reject every cell (ref. pitfalls). Under a residual
         rotation theta the differences form a plane,
-        Delta = -t_z - theta_x y + theta_y x, fitted in closed form.
+        Delta = -t_z - theta_x y + theta_y x, fitted in closed form from the
+        sums of onboard.kernels.depth_difference_sums (every other row and
+        column: a quarter of the cells fixes three parameters just as well).
         """
-        ks, cs = _overlap(self.shape, du, dv)
-        if ks is None:
-            return None
-        # Every other row and column: a quarter of the cells fixes three
-        # parameters just as well and keeps this step under a millisecond.
-        ks = (_every_other(ks[0]), _every_other(ks[1]))
-        cs = (_every_other(cs[0]), _every_other(cs[1]))
-        d_key = key.depth_ref[ks]
-        delta = img.depth_m[cs] - d_key
-        seen = (img.mask[cs] > 0) & (key.mask0[ks] > 0)
-        seen &= np.abs(img.gray[cs] - key.gray_ref[ks]) < self.p.gate_gray
-        sample = delta[::2, ::2][seen[::2, ::2]]
-        if len(sample) < self.p.min_matched_cells // 16:
-            return None
-        inl = seen & (np.abs(delta - np.median(sample)) < self.p.gate_depth_m)
-        wgt = inl.astype(np.float32)
-        n = float(wgt.sum())
+        s = key.img.res_m
+        sums = kern.depth_difference_sums(
+            key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
+            self.p.gate_gray, self.p.gate_depth_m, s, self.p.min_matched_cells // 16,
+        )
+        n = float(sums[kern.N])
         if n < self.p.min_matched_cells:
             return None
-        s = key.img.res_m
-        h, w = self.shape
-        xs = (np.arange(ks[1].start, ks[1].stop, 2) - w // 2 + 0.5) * s
-        ys = (np.arange(ks[0].start, ks[0].stop, 2) - h // 2 + 0.5) * s
-        wd = wgt * delta
-        col_w, row_w = wgt.sum(axis=0), wgt.sum(axis=1)
-        sum_d = float(wd.sum())
-        z_mean = float((wgt * d_key).sum()) / n
+        sum_d = float(sums[kern.SUM_D])
+        z_mean = float(sums[kern.SUM_ZKEY]) / n
         # The authors' sigma_z^2 (ref. §10): scatter of Delta around its mean.
-        var_z = max(float(np.vdot(wd, delta)) / n - (sum_d / n) ** 2, 0.0)
+        var_z = max(float(sums[kern.SUM_DD]) / n - (sum_d / n) ** 2, 0.0)
         theta = np.zeros(3)
 
         def fit(tz: float) -> _DepthFit:
@@ -415,11 +402,13 @@ class NislamTracker:
         # Normal equations of Delta ~ a + b (x - mx) + c (y - my), centred on
         # the matched cells so a (their mean) stays well determined even when
         # the overlap is a thin strip far from the axis.
-        mx, my = float(col_w @ xs) / n, float(row_w @ ys) / n
-        xc, yc = xs - mx, ys - my
-        sxy = float(yc @ wgt @ xc)
-        ata = np.array([[col_w @ (xc * xc), sxy], [sxy, row_w @ (yc * yc)]])
-        atb = np.array([wd.sum(axis=0) @ xc, wd.sum(axis=1) @ yc])
+        mx, my = float(sums[kern.SUM_X]) / n, float(sums[kern.SUM_Y]) / n
+        sxy = float(sums[kern.SUM_XY]) - n * mx * my
+        ata = np.array([
+            [float(sums[kern.SUM_XX]) - n * mx * mx, sxy],
+            [sxy, float(sums[kern.SUM_YY]) - n * my * my],
+        ])
+        atb = np.array([float(sums[kern.SUM_DX]) - mx * sum_d, float(sums[kern.SUM_DY]) - my * sum_d])
         try:
             b, c = np.linalg.solve(ata, atb)
         except np.linalg.LinAlgError:
@@ -609,10 +598,6 @@ def _overlap(shape: tuple[int, int], du: int, dv: int):
     cy = slice(ky.start + dv, ky.stop + dv)
     cx = slice(kx.start + du, kx.stop + du)
     return (ky, kx), (cy, cx)
-
-
-def _every_other(sl: slice) -> slice:
-    return slice(sl.start, sl.stop, 2)
 
 
 def _body_rate(attitude: AttitudeSource, t_s: float, half_s: float) -> np.ndarray | None:

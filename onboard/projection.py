@@ -11,10 +11,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 
 from onboard.frames import CameraIntrinsics
+from onboard.kernels import strided_depth_gray, zbuffer_project
+
 
 @dataclass(frozen=True)
 class Cloud:
@@ -73,22 +74,8 @@ def make_cloud(
     """Organised cloud of an undistorted pinhole frame; depth outside
     (min, max) is invalid. Gray is OpenCV's BGR2GRAY: the authors'
     0.114 B + 0.587 G + 0.299 R, rounded to 8 bits."""
-    # Gray of the whole image, then every stride-th pixel: cheaper than copying
-    # a strided colour image first. Colour stays a view (only key frames use it).
-    gray8 = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2GRAY)[::stride, ::stride]
-    depth_m = depth_m[::stride, ::stride]
-    depth = np.where((depth_m > min_depth_m) & (depth_m < max_depth_m), depth_m, 0.0)
-    return Cloud(
-        depth.astype(np.float32, copy=False), bgr[::stride, ::stride], gray8, _rays(intr, stride)
-    )
-
-
-# Depth is packed with the gray level into one integer per point so that a
-# single unbuffered minimum (np.minimum.at) is the z-buffer: the nearest point
-# wins and carries its own gray. 24 bits of 0.1 mm depth, 8 bits of gray.
-_DEPTH_UNITS_PER_M = 1.0e4
-_DEPTH_CODE_MAX = 0xFFFFFF
-_EMPTY = np.uint32(0xFFFFFFFF)
+    depth, gray8 = strided_depth_gray(bgr, depth_m, stride, min_depth_m, max_depth_m)
+    return Cloud(depth, bgr[::stride, ::stride], gray8, _rays(intr, stride))
 
 
 def project(
@@ -99,44 +86,26 @@ def project(
     with_colour: bool = False,
 ) -> AxonometricImage:
     """Rotate the cloud into the key's axes (p' = R_rel p, Sec. IV-A1) and
-    project it orthographically onto the grid with a z-buffer.
+    project it orthographically onto the grid with a z-buffer (nearest point
+    wins, onboard.kernels.zbuffer_project).
 
     Cell u covers x' in [(u - W/2) res, (u + 1 - W/2) res): a floor, not C++'s
     truncation toward zero, so the cells either side of the axis are the same
     size and shifts stay unbiased.
     """
     h, w = shape
-    # One affine pass maps rays*z to (u + w, v + h, z'): the +w/+h offsets keep
-    # in-range values positive so float->int truncation is a floor there.
-    m = np.empty((3, 4), np.float32)
+    m = np.zeros((3, 4), np.float32)
     m[:2, :3] = r_key_cur[:2] / res_m
     m[2, :3] = r_key_cur[2]
-    m[:, 3] = (w // 2 + w, h // 2 + h, 0.0)
-    z = cloud.depth_m
-    pts = cv2.transform(cv2.multiply(cloud.rays, cv2.merge([z, z, z])), m)
-    u = pts[..., 0].astype(np.int32) - w
-    v = pts[..., 1].astype(np.int32) - h
-    zr = pts[..., 2]
-    ok = (u.view(np.uint32) < w) & (v.view(np.uint32) < h) & (zr > 0)
-    idx = np.where(ok, v * w + u, h * w).ravel()  # out-of-grid points go to a spare cell
-    code = np.minimum(zr * np.float32(_DEPTH_UNITS_PER_M), np.float32(_DEPTH_CODE_MAX)).astype(np.uint32)
-    key = ((code << 8) | cloud.gray8).ravel()
-    zbuf = np.full(h * w + 1, _EMPTY, np.uint32)
-    np.minimum.at(zbuf, idx, key)
-    cells = zbuf[:-1].reshape(shape)
-    filled = cells != _EMPTY
-    cells = np.where(filled, cells, np.uint32(0))  # empty cells decode to depth 0, gray 0
-    depth = (cells >> 8).astype(np.float32)
-    depth *= np.float32(1.0 / _DEPTH_UNITS_PER_M)
-    gray = (cells & 0xFF).astype(np.float32)
-    gray *= np.float32(1.0 / 255.0)
-    mask = filled.astype(np.float32)
+    m[:2, 3] = (w // 2, h // 2)
+    depth, gray, mask, winner = zbuffer_project(
+        cloud.depth_m, cloud.gray8, cloud.rays, m, h, w, with_colour
+    )
     bgr = None
     if with_colour:
-        win = ok.ravel() & (key == zbuf[idx])
-        bgr_flat = np.zeros((h * w, 3), np.uint8)
-        bgr_flat[idx[win]] = cloud.bgr.reshape(-1, 3)[win]
-        bgr = bgr_flat.reshape(h, w, 3)
+        filled = winner.reshape(shape) >= 0
+        bgr = np.zeros((h, w, 3), np.uint8)
+        bgr[filled] = cloud.bgr.reshape(-1, 3)[winner.reshape(shape)[filled]]
     return AxonometricImage(gray, depth, mask, res_m, bgr)
 
 

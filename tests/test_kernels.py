@@ -1,0 +1,108 @@
+"""The compiled kernels (onboard/kernels.py) against plain numpy / OpenCV
+statements of what they compute, on random data where a slip in an index, a
+gate or a tie rule shows."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from onboard import kernels as kern
+
+RNG = np.random.default_rng(5)
+
+
+def test_strided_depth_gray_is_opencv_gray_and_gated_depth() -> None:
+    bgr = RNG.integers(0, 256, (97, 131, 3), dtype=np.uint8)
+    depth = RNG.uniform(0.0, 7.0, (97, 131)).astype(np.float32)
+    depth[5, 5] = np.nan
+    for stride in (1, 2, 3):
+        d, g = kern.strided_depth_gray(bgr, depth, stride, 0.2, 6.0)
+        assert np.array_equal(g, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)[::stride, ::stride])
+        z = depth[::stride, ::stride]
+        want = np.where((z > 0.2) & (z < 6.0), z, 0.0).astype(np.float32)
+        assert np.array_equal(d, want)
+
+
+def _zbuffer_reference(depth, gray8, rays, m, h, w):
+    """Nearest point per cell by brute force (sort by depth, first wins)."""
+    p = rays.reshape(-1, 3).astype(np.float64) * depth.reshape(-1, 1)
+    uvz = p @ m[:, :3].T.astype(np.float64) + m[:, 3]
+    u, v, z = uvz[:, 0], uvz[:, 1], uvz[:, 2]
+    ok = (depth.reshape(-1) > 0) & (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    out_d = np.zeros((h, w), np.float32)
+    out_g = np.zeros((h, w), np.float32)
+    seen = np.zeros((h, w), bool)
+    g = gray8.reshape(-1)
+    for k in np.flatnonzero(ok)[np.argsort(z[ok], kind="stable")]:
+        cell = (int(v[k]), int(u[k]))
+        if not seen[cell]:
+            seen[cell] = True
+            out_d[cell], out_g[cell] = z[k], g[k] / 255.0
+    return out_d, out_g, seen
+
+
+def test_zbuffer_nearest_point_wins_in_every_cell() -> None:
+    rows, cols, h, w = 40, 50, 24, 30
+    # Many points per cell, at well separated depths so 0.1 mm codes cannot tie.
+    depth = RNG.permutation(np.linspace(0.5, 4.0, rows * cols)).reshape(rows, cols).astype(np.float32)
+    depth[::7, ::5] = 0.0  # holes are skipped
+    gray8 = RNG.integers(0, 256, (rows, cols), dtype=np.uint8)
+    rays = np.dstack([
+        RNG.uniform(-0.6, 0.6, (rows, cols)), RNG.uniform(-0.5, 0.5, (rows, cols)), np.ones((rows, cols))
+    ]).astype(np.float32)
+    rot = cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0]
+    res_m = 0.08
+    m = np.zeros((3, 4), np.float32)
+    m[:2, :3] = rot[:2] / res_m
+    m[2, :3] = rot[2]
+    m[:2, 3] = (w // 2, h // 2)
+    d, g, mask, winner = kern.zbuffer_project(depth, gray8, rays, m, h, w, True)
+    ref_d, ref_g, ref_seen = _zbuffer_reference(depth, gray8, rays, m, h, w)
+    assert ref_seen.sum() > 0.5 * h * w  # the test covers most cells
+    assert np.array_equal(mask > 0, ref_seen)
+    assert np.allclose(d, ref_d, atol=1.5e-4)  # 0.1 mm depth code
+    assert np.allclose(g, ref_g, atol=1e-6)
+    # The winner index names the pixel whose gray and depth the cell holds.
+    filled = winner >= 0
+    assert np.array_equal(filled.reshape(h, w), ref_seen)
+    assert np.allclose(gray8.reshape(-1)[winner[filled]] / 255.0, g.reshape(-1)[filled], atol=1e-6)
+
+
+def _sums_reference(kd, km, kg, cd, cm, cg, du, dv, gate_gray, gate_depth, res_m):
+    h, w = kd.shape
+    ky, kx = slice(max(0, -dv), min(h, h - dv), 2), slice(max(0, -du), min(w, w - du), 2)
+    cy = slice(ky.start + dv, ky.stop + dv, 2)
+    cx = slice(kx.start + du, kx.stop + du, 2)
+    delta = (cd[cy, cx] - kd[ky, kx]).astype(np.float64)
+    seen = (cm[cy, cx] > 0) & (km[ky, kx] > 0) & (np.abs(cg[cy, cx] - kg[ky, kx]) < gate_gray)
+    med = np.median(delta[::2, ::2][seen[::2, ::2]])
+    inl = seen & (np.abs(delta - med) < gate_depth)
+    ys, xs = np.mgrid[ky, kx]
+    x = (xs - w // 2 + 0.5) * res_m
+    y = (ys - h // 2 + 0.5) * res_m
+    d, zk, x, y = delta[inl], kd[ky, kx][inl].astype(np.float64), x[inl], y[inl]
+    return np.array([
+        len(d), d.sum(), (d * d).sum(), zk.sum(), x.sum(), y.sum(),
+        (x * x).sum(), (y * y).sum(), (x * y).sum(), (d * x).sum(), (d * y).sum(),
+    ])
+
+
+@pytest.mark.parametrize("du, dv", [(0, 0), (7, -3), (-12, 9)])
+def test_depth_difference_sums_match_numpy(du: int, dv: int) -> None:
+    h, w = 60, 80
+    kd = RNG.uniform(1.0, 3.0, (h, w)).astype(np.float32)
+    km = (RNG.random((h, w)) > 0.2).astype(np.float32)
+    kg = RNG.random((h, w)).astype(np.float32)
+    cd = (np.roll(kd, (dv, du), axis=(0, 1)) + 0.05 + RNG.normal(0, 0.01, (h, w))).astype(np.float32)
+    cd[RNG.random((h, w)) < 0.1] += 1.0  # outliers the depth gate must reject
+    cm = (RNG.random((h, w)) > 0.2).astype(np.float32)
+    cg = (np.roll(kg, (dv, du), axis=(0, 1)) + RNG.normal(0, 0.06, (h, w))).astype(np.float32)
+    args = (kd, km, kg, cd, cm, cg, du, dv, 0.1, 0.1, 0.01)
+    got = kern.depth_difference_sums(*args, 1)
+    want = _sums_reference(*args)
+    assert 100 < got[kern.N] < 0.25 * h * w
+    assert np.allclose(got, want, rtol=1e-6, atol=1e-9)
+    # Too few cells for the median: nothing is summed.
+    assert not kern.depth_difference_sums(*args, 10**6).any()
