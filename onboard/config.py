@@ -346,6 +346,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.adaptive_mu": SHARE,
     "nislam.min_valid_fraction": FRACTION,
     "nislam.time_offset_forget": SHARE,
+    "nislam.layer_min_cover": SHARE,
     # lengths and scales
     "nislam.max_distance_m": POSITIVE,
     "nislam.min_depth_m": NON_NEGATIVE,
