@@ -595,7 +595,7 @@ class FastOrbTracker:
                 desc = np.zeros((0, 32), np.uint8)
         else:
             kps, desc = self._orb.detect(gray, mask), None
-        uv = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
+        uv = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2) if kps else np.zeros((0, 2))
         return _Features(uv, desc)
 
     def _occupancy(self, uv: np.ndarray) -> tuple[np.ndarray, int]:

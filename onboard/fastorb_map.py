@@ -12,6 +12,12 @@ from onboard.fastorb_motion import camera_in_world
 from onboard.frames import KeyframeCloud
 
 
+# The 4 x 4 pixels around a sub-pixel position, row by row: (row, column) offsets
+# from the pixel at its floor.
+_WIN_DV = np.repeat(np.arange(-1, 3), 4)
+_WIN_DU = np.tile(np.arange(-1, 3), 4)
+
+
 def sample_depth(
     depth_m: np.ndarray,
     uv: np.ndarray,
@@ -29,9 +35,7 @@ def sample_depth(
     y = np.clip(uv[:, 1], 1.0, h - 3.0)
     u0, v0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     fx, fy = x - u0, y - v0
-    win = np.stack(
-        [depth_m[v0 + dy, u0 + dx] for dy in (-1, 0, 1, 2) for dx in (-1, 0, 1, 2)], axis=1
-    ).astype(np.float64)
+    win = depth_m[v0[:, None] + _WIN_DV, u0[:, None] + _WIN_DU].astype(np.float64)  # (N, 16)
     z00, z01, z10, z11 = win[:, 5], win[:, 6], win[:, 9], win[:, 10]
     z = (z00 * (1 - fx) + z01 * fx) * (1 - fy) + (z10 * (1 - fx) + z11 * fx) * fy
     lo, hi = win.min(axis=1), win.max(axis=1)
@@ -159,6 +163,16 @@ def _gather(kfs: tuple[Keyframe, ...]) -> MapPoints:
     )
 
 
+def _quantile(a: np.ndarray, q: float) -> float:
+    """np.quantile(a, q) (linear interpolation) by one partition, without
+    its generic overhead."""
+    pos = q * (len(a) - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, len(a) - 1)
+    part = np.partition(a, [lo, hi])
+    return float(np.quantile(part[[lo, hi]], pos - lo))
+
+
 def keyframe_cloud(
     kf: Keyframe, K: np.ndarray, stride: int, min_depth_m: float, max_depth_m: float
 ) -> KeyframeCloud | None:
@@ -179,19 +193,22 @@ def keyframe_cloud(
     zz = z[vv, uu]
     x = (uu * stride - K[0, 2]) / K[0, 0] * zz
     y = (vv * stride - K[1, 2]) / K[1, 1] * zz
-    res = max(np.quantile(np.abs(x), 0.95) / (w // 2), np.quantile(np.abs(y), 0.95) / (h // 2), 1e-3)
+    res = max(_quantile(np.abs(x), 0.95) / (w // 2), _quantile(np.abs(y), 0.95) / (h // 2), 1e-3)
     cu = np.floor(x / res + w // 2).astype(np.int64)
     cv = np.floor(y / res + h // 2).astype(np.int64)
-    ok = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    ok = np.flatnonzero((cu >= 0) & (cu < w) & (cv >= 0) & (cv < h))
     cell = (cv * w + cu)[ok]
-    order = np.lexsort((zz[ok], cell))  # by cell, nearest first
-    first = np.unique(cell[order], return_index=True)[1]
-    pick = np.flatnonzero(ok)[order[first]]
+    # By cell, nearest first, in one stable sort: depths are below 1e3 m, so
+    # cell * 1e3 + z orders as (cell, z) does.
+    order = np.argsort(cell * 1e3 + zz[ok], kind="stable")
+    cell = cell[order]
+    first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+    pick = ok[order[first]]
     grid_depth = np.zeros((h, w), np.float32)
     grid_bgr = np.zeros((h, w, 3), np.uint8)
-    grid_depth.flat[cell[order[first]]] = zz[pick]
-    colours = bgr[::stride, ::stride][vv[pick], uu[pick]]
-    grid_bgr.reshape(-1, 3)[cell[order[first]]] = colours
-    gray = grid_bgr.astype(np.float32).mean(axis=2) / 255.0
+    grid_depth.flat[cell[first]] = zz[pick]
+    grid_bgr.reshape(-1, 3)[cell[first]] = bgr[vv[pick] * stride, uu[pick] * stride]
+    wide = grid_bgr.astype(np.float32)
+    gray = (wide[..., 0] + wide[..., 1] + wide[..., 2]) / np.float32(3.0) / np.float32(255.0)
     p_W, R_W_C = camera_in_world(kf.T_cw)
     return KeyframeCloud(kf.keyframe_id, kf.t_s, p_W, R_W_C, float(res), grid_depth, gray, grid_bgr)

@@ -182,9 +182,21 @@ def match_by_projection(
         cKDTree(map_uv), radius_px, output_type="ndarray"
     )
     q, t = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    d = hamming(desc[q], map_desc[t])
+    d = _hamming_pairs(desc, map_desc, q, t)
     ok = d <= max_hamming
-    return _unique_pairs(q[ok], t[ok], d[ok])
+    # 16-bit distances: numpy's stable sort is a radix sort on them
+    return _unique_pairs(q[ok], t[ok], d[ok].astype(np.uint16))
+
+
+def _hamming_pairs(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Hamming distances between rows a[i] and b[j] of (N, 32) uint8
+    descriptors, one 64-bit word at a time (no (P, 32) copies)."""
+    a64 = np.ascontiguousarray(a).view(np.uint64)
+    b64 = np.ascontiguousarray(b).view(np.uint64)
+    d = np.zeros(len(i), np.int64)
+    for k in range(a64.shape[1]):
+        d += np.bitwise_count(a64[:, k][i] ^ b64[:, k][j])
+    return d
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

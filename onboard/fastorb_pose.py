@@ -68,15 +68,14 @@ def solve_pnp(
     # fit), within `sigma_gate` robust standard deviations of the residuals:
     # with sub-pixel tracks a 2-3 px outlier would still pass the RANSAC
     # threshold and pull the pose along its weakest direction.
-    res, J = _residuals(T, obj, img, disp, K, s.bf_px)
-    inl = _gated(res, inl, s)
+    inl = _gated(_residuals(T, obj, img, disp, K, s.bf_px, jacobian=False)[0], inl, s)
     if s.sigma_gate > 0 and inl.sum() >= min_inliers:
         T = _refine(T, obj[inl], img[inl], disp[inl], K, s, 1)  # already close
-        res, J = _residuals(T, obj, img, disp, K, s.bf_px)
-        inl = _gated(res, inl, s)
+        inl = _gated(_residuals(T, obj, img, disp, K, s.bf_px, jacobian=False)[0], inl, s)
     if inl.sum() < min_inliers:
         return None
-    rms, cov = _covariance(res[inl], J[inl], s.huber_px)
+    res, J = _residuals(T, obj[inl], img[inl], disp[inl], K, s.bf_px)  # the final inliers only
+    rms, cov = _covariance(res, J, s.huber_px)
     return PnpResult(T, inl, rms, cov)
 
 
@@ -154,7 +153,7 @@ def refine_pose(
         res, J = _residuals(T, obj, img, disp, K, bf_px)
         w = _huber_weights(res, huber_px)
         Jf = J.reshape(-1, 6)
-        Jw = Jf * np.repeat(w, 3)[:, None]
+        Jw = (J * w[:, None, None]).reshape(-1, 6)
         try:
             step = -np.linalg.solve(Jw.T @ Jf, Jw.T @ res.ravel())
         except np.linalg.LinAlgError:
@@ -167,12 +166,13 @@ def refine_pose(
 
 def _residuals(
     T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, K: np.ndarray,
-    bf_px: float,
-) -> tuple[np.ndarray, np.ndarray]:
+    bf_px: float, jacobian: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Residuals (N, 3) [px]: reprojection (u, v) and, where a disparity was
     measured (disp > 0), predicted minus measured disparity bf / z (0
     elsewhere); their Jacobians (N, 3, 6) with respect to a left perturbation
-    (phi, rho) of T_cw: exp(xi^) T_cw, i.e. d(residual)/dp [-[p]x | I]."""
+    (phi, rho) of T_cw: exp(xi^) T_cw, i.e. d(residual)/dp [-[p]x | I]
+    (None with `jacobian` false: the inlier gates need the residuals only)."""
     p = obj @ T_cw[:3, :3].T + T_cw[:3, 3]
     iz = 1.0 / np.maximum(p[:, 2], 1e-6)
     xz, yz = p[:, 0] * iz, p[:, 1] * iz
@@ -180,6 +180,11 @@ def _residuals(
     res = np.zeros((len(p), 3))
     res[:, 0] = fx * xz + K[0, 2] - img[:, 0]
     res[:, 1] = fy * yz + K[1, 2] - img[:, 1]
+    has = disp > 0
+    if not jacobian:
+        if bf_px > 0:
+            res[has, 2] = bf_px * iz[has] - disp[has]
+        return res, None
     J = np.zeros((len(p), 3, 6))
     J[:, 0, 0] = -fx * xz * yz
     J[:, 0, 1] = fx * (1.0 + xz * xz)
@@ -191,7 +196,6 @@ def _residuals(
     J[:, 1, 2] = fy * xz
     J[:, 1, 4] = fy * iz
     J[:, 1, 5] = -fy * yz * iz
-    has = disp > 0
     if bf_px > 0 and has.any():
         # d(bf/z)/dp = -bf/z^2 e_z; e_z^T [-[p]x | I] = [y, -x, 0, 0, 0, 1]
         res[has, 2] = bf_px * iz[has] - disp[has]
@@ -221,7 +225,7 @@ def _covariance(res: np.ndarray, J: np.ndarray, huber_px: float) -> tuple[float,
     sigma2 = max(sse / max(n_obs - 6, 1), 0.01)
     Jf = J.reshape(-1, 6)
     try:
-        cov = sigma2 * np.linalg.inv((Jf * np.repeat(w, 3)[:, None]).T @ Jf)
+        cov = sigma2 * np.linalg.inv((J * w[:, None, None]).reshape(-1, 6).T @ Jf)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.nan)
     return float(np.sqrt(np.mean(np.sum(res[:, :2] ** 2, axis=1)))), cov
