@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from onboard import kernels as kern
 from onboard.correlation import KernelCorrelationFilter, Peak, find_peak
 from onboard.frames import (
     AttitudeSource,
@@ -32,7 +33,6 @@ from onboard.frames import (
     TrackResult,
     TrackState,
 )
-from onboard import kernels as kern
 from onboard.geometry import so3_log
 from onboard.projection import AxonometricImage, Cloud, adaptive_resolution, make_cloud, project
 
@@ -65,11 +65,11 @@ class NislamParams:
     depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
-    calibrate_every_n_frames: int = 4  # layer correlation for the calibration on every n-th frame
+    calibrate_every_n_frames: int = 4  # residual-rotation fit for the calibration on every n-th frame
     calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
     layer_min_gap_m: float = 0.2  # depth relief (2 x std) the residual rotation needs
-    layer_downsample: int = 4  # layer images are correlated at 1/n of the grid resolution
-    layer_min_cover: float = 0.2  # a layer block counts when this share of its cells is filled
+    layer_downsample: int = 4  # the residual rotation is fitted on blocks of n x n cells
+    layer_min_cover: float = 0.2  # a block takes part when this share of its cells is filled in both
     time_offset_s: float = 0.0  # initial attitude time offset: attitude is queried at t + offset
     time_offset_max_s: float = 0.1
     time_offset_forget: float = 0.999  # per-update forgetting: a hardware constant, ~1000 updates of memory
