@@ -150,8 +150,10 @@ class _RotationResidual:
         ks, cs = _overlap(img.gray.shape, du, dv)
         if ks is None:
             return None
-        key_g, key_z, key_cover = _block_means(self.gray[ks], self.depth_m[ks], self.mask[ks], n)
-        cur_g, cur_z, cur_cover = _block_means(img.gray[cs], img.depth_m[cs], img.mask[cs], n)
+        # Coverage per block, not per cell, decides what both images hold: two
+        # sparse samplings of one surface share few cells but the same blocks.
+        key_g, key_z, key_cover = kern.block_means(self.gray[ks], self.depth_m[ks], self.mask[ks], n)
+        cur_g, cur_z, cur_cover = kern.block_means(img.gray[cs], img.depth_m[cs], img.mask[cs], n)
         ok = (key_cover >= p.layer_min_cover) & (cur_cover >= p.layer_min_cover)
         ok &= np.abs(cur_z + tz_m - key_z) < p.gate_depth_m
         inner = ok[1:-1, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
@@ -176,23 +178,6 @@ class _RotationResidual:
         # dv by +theta_x z; r is in blocks of n cells per metre.
         s = img.res_m * n
         return np.array([rv * s, -ru * s, 0.0])
-
-
-def _block_means(
-    gray: np.ndarray, depth_m: np.ndarray, mask: np.ndarray, down: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean gray and depth of the filled cells of each down x down block and
-    the filled share (whole blocks only). Coverage per block, not per cell,
-    decides what both images hold: two sparse samplings of one surface share
-    few cells, but they cover the same blocks."""
-    h, w = gray.shape[0] // down * down, gray.shape[1] // down * down
-    size = (w // down, h // down)
-    m = mask[:h, :w]
-    cover = cv2.resize(m, size, interpolation=cv2.INTER_AREA)
-    inv = 1.0 / np.maximum(cover, np.float32(1e-6))
-    g = cv2.resize(gray[:h, :w] * m, size, interpolation=cv2.INTER_AREA) * inv
-    z = cv2.resize(depth_m[:h, :w] * m, size, interpolation=cv2.INTER_AREA) * inv
-    return g, z, cover
 
 
 @dataclass(frozen=True)

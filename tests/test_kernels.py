@@ -106,3 +106,19 @@ def test_depth_difference_sums_match_numpy(du: int, dv: int) -> None:
     assert np.allclose(got, want, rtol=1e-6, atol=1e-9)
     # Too few cells for the median: nothing is summed.
     assert not kern.depth_difference_sums(*args, 10**6).any()
+
+
+@pytest.mark.parametrize("window", [np.s_[:, :], np.s_[3:, 5:]])
+def test_block_means_are_masked_block_averages(window) -> None:
+    gray = RNG.random((37, 50)).astype(np.float32)[window]
+    depth = RNG.uniform(1.0, 3.0, (37, 50)).astype(np.float32)[window]
+    mask = (RNG.random((37, 50)) > 0.85).astype(np.float32)[window]
+    g, z, cover = kern.block_means(gray, depth, mask, 4)
+    h, w = gray.shape[0] // 4, gray.shape[1] // 4
+    blocks = lambda a: a[: 4 * h, : 4 * w].reshape(h, 4, w, 4).sum(axis=(1, 3))  # noqa: E731
+    n = blocks(mask)
+    assert np.allclose(cover, n / 16.0)
+    assert (n == 0).any() and (n > 0).any()  # empty blocks are covered by the test
+    with np.errstate(invalid="ignore", divide="ignore"):
+        assert np.allclose(g, np.where(n > 0, blocks(gray * mask) / n, 0.0), atol=1e-6)
+        assert np.allclose(z, np.where(n > 0, blocks(depth * mask) / n, 0.0), atol=1e-6)
