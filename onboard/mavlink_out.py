@@ -465,7 +465,7 @@ class MavlinkOutput:
         self._shared = link
         self._rx: deque[Any] = deque(maxlen=64)  # messages a shared link handed over
         self._health: FeedState | None = None  # the loop's health, when it reports one
-        self._health_texts: deque[tuple[int, str]] = deque(maxlen=8)
+        self._health_texts: deque[tuple[int, str, FeedState]] = deque(maxlen=8)
         self._remove_listener: Callable[[], None] | None = None
         if link is not None:
             self._remove_listener = link.add_listener(
@@ -492,7 +492,9 @@ class MavlinkOutput:
             return
         self._health = state  # one attribute store: atomic; the sender reads it
         if report.changed:
-            self._health_texts.append((_SEVERITY[state], f"{report.state.value}: {report.reason}"))
+            self._health_texts.append(
+                (_SEVERITY[state], f"{report.state.value}: {report.reason}", state)
+            )
         self._wake()
 
     def close(self, timeout_s: float = 2.0) -> None:
@@ -561,10 +563,13 @@ class MavlinkOutput:
             self._wait(now)
         if self._link_open:
             self._receive()
-        if self._health_texts:
-            while self._health_texts:
-                self._statustext(*self._health_texts.popleft())
-            self._heartbeat()  # the new state at once
+        while self._health_texts:
+            severity, text, state = self._health_texts.popleft()
+            self._statustext(severity, text)
+            # Each change's own state at once, even when the next change came
+            # before this thread woke (a first frame that tracks at once would
+            # otherwise never show STANDBY).
+            self._heartbeat(state)
         while self._queue:
             result = self._queue.popleft()
             with self._lock:
@@ -754,10 +759,11 @@ class MavlinkOutput:
     def _system_status(self) -> FeedState:
         return self._health if self._health is not None else self.feed.state
 
-    def _heartbeat(self) -> None:
+    def _heartbeat(self, state: FeedState | None = None) -> None:
         self._next_heartbeat = time.monotonic() + self.cfg.heartbeat_period_s
+        state = self._system_status if state is None else state
         if self._send("heartbeat", MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0,
-                      self._system_status.mav_state):
+                      state.mav_state):
             with self._lock:
                 self._stats.heartbeats += 1
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from drivers.attitude import AttitudeBuffer
 from drivers.camera import CameraSource
+from onboard import kernels
 from onboard.bench import pin_one_core
 from onboard.config import Config, config_to_toml
 from onboard.fallback import SwitchingTracker
@@ -267,6 +268,11 @@ class Service:
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg, mavlink_link=self.sources.link)
         stop_times: dict[str, float] = {}
+        # Announce "starting" before anything can block the loop, and compile
+        # the tracker's kernels (or load them from numba's cache) before the
+        # sensors run: the first frames then meet a ready tracker.
+        self._report(outputs, self.health.on_idle(time.monotonic()))
+        kernels.warm_up()
         self.sources.start()
         try:
             self.stats.period_start_s = t_start
@@ -436,6 +442,9 @@ class Service:
             "frames": s.frames,
             "frames_tracked": s.tracked,
             "frames_dropped": self._dropped(),
+            # A replay that could not decode in time skips frames before the
+            # slot sees them (sim_replay.sources.ReplayCamera): not "dropped".
+            "frames_late_at_source": int(getattr(self.sources.camera, "late", 0)),
             "frame_hz": s.frames / seconds if seconds > 0 else 0.0,
             "keyframes": s.keyframes,
             "reset_counter": s.resets,

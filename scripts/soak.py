@@ -108,6 +108,10 @@ def main() -> int:
     # RSS "at start": once the first statistics period is done (imports,
     # first key frames, zenoh session and thread stacks all in place).
     warm = next((r for t, r in samples if t >= 15.0), samples[0][1] if samples else None)
+    # Also from the end of minute 1: bounded holdings fill during it (the map
+    # up to map_max_mb, the malloc arenas to the working set), so growth past
+    # it is what a leak would show.
+    minute1 = next((r for t, r in samples if t >= 60.0), None)
     report = {
         "minutes": args.minutes,
         "frames": metrics["frames"],
@@ -119,14 +123,21 @@ def main() -> int:
         "rss_start_mb": warm,
         "rss_end_mb": samples[-1][1] if samples else None,
         "rss_growth_mb": (samples[-1][1] - warm) if samples and warm else None,
+        "rss_1min_mb": minute1,
+        "rss_growth_after_1min_mb": (samples[-1][1] - minute1) if minute1 else None,
+        "frames_late_at_source": metrics.get("frames_late_at_source"),
         "rss_samples": samples,
         "per_minute": table,
     }
     (args.out / "soak.json").write_text(json.dumps(report, indent=2) + "\n")
     print(f"\nsoak: {args.minutes:g} min, {metrics['frames']} frames at "
-          f"{metrics['frame_hz']:.1f} Hz, dropped {metrics['frames_dropped']}")
+          f"{metrics['frame_hz']:.1f} Hz, dropped {metrics['frames_dropped']}, "
+          f"late at the source {metrics.get('frames_late_at_source', 0)}")
     print(f"RSS {warm:.1f} MB after 15 s -> {samples[-1][1]:.1f} MB at the end "
           f"({report['rss_growth_mb']:+.1f} MB)")
+    if minute1 is not None:
+        print(f"RSS {minute1:.1f} MB after 60 s -> {samples[-1][1]:.1f} MB at the end "
+              f"({report['rss_growth_after_1min_mb']:+.1f} MB)")
     print("minute   Hz   p50 ms  p95 ms  p99 ms  dropped (worst period of the minute)")
     for row in table:
         print(f"{row['minute']:>6} {row['hz']:5.1f} {row['ms_p50']:7.1f} {row['ms_p95']:7.1f} "

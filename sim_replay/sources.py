@@ -124,6 +124,7 @@ class ReplayCamera(DriverThread):
         self.slot = FrameSlot()
         self.published = 0
         self.unreadable = 0
+        self.late = 0  # frames skipped because the next one was already due (see _run)
 
     def start(self) -> None:
         self.clock.start()
@@ -140,8 +141,23 @@ class ReplayCamera(DriverThread):
         return self.slot.closed
 
     def _run(self) -> None:
+        index, played = self.schedule
+        n = len(index)
         try:
-            for i, t_play in zip(*self.schedule):
+            for k in range(n):
+                i, t_play = index[k], played[k]
+                # A camera captures on its own clock whatever its reader does.
+                # When decoding falls behind (a busy CPU) and the next frame is
+                # already due, this one would be replaced in the slot at once:
+                # skip it, as a camera's slot would drop it, rather than lag
+                # the clock for good (the attitude, played on time, would then
+                # run out of the buffer around the frames: "no attitude").
+                if k + 1 < n and self.clock.now_s() >= played[k + 1] + self.delivery_s:
+                    if self.late == 0:
+                        log.warning("%s: decoding behind the replay clock; skipping frames "
+                                    "that are already stale (counted as late)", self.name)
+                    self.late += 1
+                    continue
                 frame = self.seq.read_frame(int(i))  # decode ahead of its stamp
                 if frame is None:
                     self.unreadable += 1
