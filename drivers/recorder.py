@@ -14,8 +14,10 @@ Leftover `*.tmp` files of an interrupted write are never listed.
 
 Frames come from a CameraSource's newest-frame slot; a writer thread encodes
 them behind a bounded queue (the oldest dropped when full, counted) so the
-loop keeps up with the camera. Attitude samples come from the attitude
-buffer (`samples_after`), all of them, at their own stamps.
+loop keeps up with the camera. On a replay, the frames the replay camera
+skipped as already stale are counted too (`frames_late_at_source`).
+Attitude samples come from the attitude buffer (`samples_after`), all of
+them, at their own stamps.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from .attitude import AttitudeBuffer, AttitudeSample
 
 if TYPE_CHECKING:
     from onboard.config import Config
+    from sim_replay.sources import ReplayCamera
     from sim_replay.tum import CameraModel
 
     from .hardware import Hardware
@@ -48,7 +51,7 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.1  # longest wait for a frame per loop turn (bounds the stop time)
 TAIL_S = 0.3  # after a camera's last frame, keep collecting attitude this long
-REPLAY_TAIL_TIMEOUT_S = 10.0  # ... or until the attitude replay has played out
+REPLAY_TAIL_TIMEOUT_S = 10.0  # ... or until the attitude replay has played out (at speed 1)
 
 
 # --------------------------------------------------------------------------- files
@@ -194,12 +197,16 @@ class FrameWriterThread:
 
 @dataclass
 class RecordResult:
+    """What a recording holds and what it lost: on a whole replay every source
+    frame is recorded, dropped or late at the source (nothing lost silently)."""
+
     out_dir: Path
     source: str
     attitude_source: str
     frames: int = 0
     attitude_samples: int = 0
     frames_dropped: int = 0  # newest-frame slot drops + writer queue drops
+    frames_late_at_source: int = 0  # replay frames skipped as already stale (ReplayCamera.late)
     seconds: float = 0.0
     stop_times_s: dict[str, float] = field(default_factory=dict)
 
@@ -210,7 +217,8 @@ class RecordResult:
             f"recorded {self.frames} frames ({hz:.1f} Hz) and {self.attitude_samples} attitude "
             f"samples in {self.seconds:.1f} s into {self.out_dir}",
             f"source: {self.source}; attitude: {self.attitude_source}; "
-            f"frames dropped: {self.frames_dropped}",
+            f"frames dropped: {self.frames_dropped}; "
+            f"late at the source: {self.frames_late_at_source}",
             f"driver stop times: {stops or 'n/a'}",
         ]
 
@@ -221,24 +229,30 @@ def record(
     *,
     seconds: float | None = None,
     replay_dir: Path | str | None = None,
+    replay_speed: float = 1.0,
     stop: threading.Event | None = None,
     hardware: Hardware | None = None,
 ) -> RecordResult:
     """Record until `seconds` pass, `stop` is set, or the replay ends.
 
-    Sources: the replay drivers for `replay_dir`; else `hardware` (built by
-    drivers.hardware.make_hardware from `cfg` when None)."""
+    Sources: the replay drivers for `replay_dir`, played at `replay_speed`
+    (1 = real time; slower leaves a busy machine more time per frame); else
+    `hardware` (built by drivers.hardware.make_hardware from `cfg` when None)."""
     stop = stop or threading.Event()
     out_dir = Path(out_dir)
+    replay_camera: ReplayCamera | None = None  # counts the frames it skipped as late
+    tail_timeout_s = REPLAY_TAIL_TIMEOUT_S
     if replay_dir is not None:
         from sim_replay.sources import open_replay
 
-        rp = open_replay(replay_dir, buffer_capacity=cfg.ahrs.buffer_samples,
+        rp = open_replay(replay_dir, speed=replay_speed, buffer_capacity=cfg.ahrs.buffer_samples,
                          max_age_s=cfg.ahrs.max_age_s, max_gap_s=cfg.ahrs.max_gap_s,
                          assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort)
         camera, buffer, sources = rp.camera, rp.buffer, rp
         result = RecordResult(out_dir, f"replay of {Path(replay_dir)}", rp.attitude_label)
         attitude_done = rp.attitude.finished if rp.attitude is not None else None
+        replay_camera = rp.camera
+        tail_timeout_s = REPLAY_TAIL_TIMEOUT_S / min(1.0, replay_speed)
     else:
         from .hardware import make_hardware
 
@@ -261,7 +275,7 @@ def record(
         writer.write_camera(cam)
         frame_writer = FrameWriterThread(writer, cam.depth_scale, cfg.record.queue_frames)
         _loop(camera, buffer, writer, frame_writer, stop,
-              None if seconds is None else t0 + seconds, attitude_done)
+              None if seconds is None else t0 + seconds, attitude_done, tail_timeout_s)
     finally:
         sources.stop()
         result.stop_times_s = dict(sources.stop_times_s)
@@ -276,28 +290,32 @@ def record(
     result.frames = writer.frames
     result.attitude_samples = writer.attitude_samples
     result.frames_dropped += camera.slot.stats.dropped
+    result.frames_late_at_source = replay_camera.late if replay_camera is not None else 0
     result.seconds = time.monotonic() - t0
     return result
 
 
 def _loop(camera: Any, buffer: AttitudeBuffer, writer: SequenceWriter,
           frame_writer: FrameWriterThread, stop: threading.Event, deadline: float | None,
-          attitude_done: threading.Event | None) -> None:
+          attitude_done: threading.Event | None, tail_timeout_s: float) -> None:
     last_seq = 0
     tail_until: float | None = None
     while not stop.is_set() and frame_writer.error is None:
         now = time.monotonic()
         if deadline is not None and now >= deadline:
             break
+        # Read before the take: a frame put just before the camera closed is
+        # then still taken, not left in the slot uncounted.
+        exhausted = camera.exhausted
         got = camera.take(last_seq, POLL_S)
         if got is not None:
             last_seq, frame = got
             frame_writer.put(frame)
         writer.write_attitude(buffer.samples_after(writer.last_attitude_ns))
-        if got is None and camera.exhausted:
+        if got is None and exhausted:
             # End of a replay: collect the attitude that follows the last frame.
             if attitude_done is not None:
-                attitude_done.wait(REPLAY_TAIL_TIMEOUT_S)
+                attitude_done.wait(tail_timeout_s)
                 break
             tail_until = tail_until or now + TAIL_S
             if now >= tail_until:

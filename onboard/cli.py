@@ -422,6 +422,8 @@ def _add_record_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
     rc.add_argument("--replay", type=Path, metavar="SEQ_DIR",
                     help="read a recorded sequence through the replay drivers at real-time pace "
                          "instead of the hardware")
+    rc.add_argument("--replay-speed", type=float, default=1.0, metavar="X",
+                    help="pace of --replay: 1 = real time (default), 0.5 = half speed")
     rc.set_defaults(func=cmd_record)
 
 
@@ -431,9 +433,12 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     if args.seconds is not None and not args.seconds > 0:
         raise NislamError(f"--seconds must be > 0, got {args.seconds}")
+    if not 0.01 <= args.replay_speed <= 100.0:
+        raise NislamError(f"--replay-speed must be in [0.01, 100], got {args.replay_speed}")
     cfg = load_config(args.config)
     with _stop_on_signals() as stop:
-        result = record(cfg, args.out, seconds=args.seconds, replay_dir=args.replay, stop=stop)
+        result = record(cfg, args.out, seconds=args.seconds, replay_dir=args.replay,
+                        replay_speed=args.replay_speed, stop=stop)
     print("\n".join(result.summary_lines()), flush=True)
     return 0
 
