@@ -20,6 +20,7 @@ from onboard.frames import TrackState
 from onboard.mavlink_out import R_B_C_FORWARD, MavlinkOutput
 
 PEER = REPO / "tests" / "mavlink_peer.py"
+WAIT_S = 60.0
 DT = 1.0 / 30.0
 T0 = 1000.0
 S = math.sqrt(0.5)
@@ -29,7 +30,7 @@ F32 = dict(rel=1e-6, abs=1e-9)
 
 def start_peer(connect: str, *extra: str) -> JsonLinesProcess:
     peer = JsonLinesProcess(python_script(PEER, connect, *extra))
-    peer.wait_for(lambda lines: any(m.get("ready") for m in lines), 60, "peer ready")
+    peer.wait_for(lambda lines: any(m.get("ready") for m in lines), WAIT_S, "peer ready")
     return peer
 
 
@@ -74,9 +75,9 @@ def odometry_run() -> JsonLinesProcess:
         for _i, r in results():
             out.publish(r)
         n_poses = sum(row[0] for row in scenario())
-        peer.wait_for(count("ODOMETRY", n_poses), 30, "every pose")
-        peer.wait_for(count("TIMESYNC", 6), 30, "timesync replies")
-        peer.wait_for(count("SET_HOME_POSITION", 1), 30, "home")
+        peer.wait_for(count("ODOMETRY", n_poses), WAIT_S, "every pose")
+        peer.wait_for(count("TIMESYNC", 6), WAIT_S, "timesync replies")
+        peer.wait_for(count("SET_HOME_POSITION", 1), WAIT_S, "home")
         assert out.stats()["dropped"] == 0
     finally:
         out.close()
@@ -163,9 +164,11 @@ def test_timesync_answered_with_our_monotonic_clock(odometry_run: JsonLinesProce
     replies = msgs(odometry_run, "TIMESYNC")
     assert replies
     for m in replies:
-        assert m["tc1"] != 0 and m["ts1"] > 0
-        # our clock is the system's CLOCK_MONOTONIC, like the peer's receive stamp
-        assert abs(m["tc1"] * 1e-9 - m["t"]) < 1.0
+        # ts1 echoes the request, stamped by the peer (time.monotonic_ns) when
+        # it sent it; tc1 is our clock when we answered; "t" the peer's clock
+        # when the answer arrived. One CLOCK_MONOTONIC on this host, so they
+        # come in this order, however long each step took.
+        assert 0 < m["ts1"] <= m["tc1"] <= round(m["t"] * 1e9)
 
 
 def test_origin_and_home_from_config(odometry_run: JsonLinesProcess) -> None:
@@ -186,7 +189,7 @@ def test_vision_position_fallback() -> None:
     try:
         for i in range(5):
             out.publish(track_result(T0 + i * DT, [0.03 * i, 2.0, -1.5], R_W_C))
-        peer.wait_for(count("VISION_SPEED_ESTIMATE", 4), 30, "speed estimates")
+        peer.wait_for(count("VISION_SPEED_ESTIMATE", 4), WAIT_S, "speed estimates")
     finally:
         out.close()
         peer.stop()
@@ -206,21 +209,36 @@ def test_vision_position_fallback() -> None:
 def test_heartbeat_at_the_configured_rate_and_stale_feed_lost() -> None:
     port = free_port()
     peer = start_peer(f"udpin:127.0.0.1:{port}")
-    out = MavlinkOutput(MavlinkConfig(connect=f"udpout:127.0.0.1:{port}", stale_s=0.3))
+    period_s = 0.5
+    t0 = time.monotonic()
+    out = MavlinkOutput(MavlinkConfig(connect=f"udpout:127.0.0.1:{port}", stale_s=0.3,
+                                      heartbeat_period_s=period_s))
     try:
         out.publish(track_result(T0, [0, 0, 0]))
         peer.wait_for(lambda lines: any(m.get("text", "").startswith("NISLAM: lost: no frames")
-                                        for m in lines), 30, "lost after silence")
-        peer.wait_for(count("HEARTBEAT", 5), 30, "periodic heartbeats")
+                                        for m in lines), WAIT_S, "lost after silence")
+        # While nothing changes, the heartbeats go on: four more after LOST.
+        peer.wait_for(lambda lines: sum(m.get("mavpackettype") == "HEARTBEAT"
+                                        and m["system_status"] == 8 for m in lines) >= 5,
+                      WAIT_S, "periodic heartbeats")
     finally:
-        out.close()
+        out.close(WAIT_S)  # the sender thread has ended when elapsed_s is taken
+        elapsed_s = time.monotonic() - t0
         peer.stop()
     beats = msgs(peer, "HEARTBEAT")
-    assert [b["system_status"] for b in beats][-1] == 8
-    # BOOT, ACTIVE and LOST at once (state changes), then one a second
-    assert [b["system_status"] for b in beats[:3]] == [1, 4, 8]
-    gaps = np.diff([b["t"] for b in beats[2:]])
-    assert np.all(np.abs(gaps - 1.0) < 0.35), gaps
+    states = [b["system_status"] for b in beats]
+    print(f"{len(beats)} heartbeats in {elapsed_s:.2f} s (period {period_s} s); peer receive "
+          f"gaps {np.round(np.diff([b['t'] for b in beats]), 2).tolist()}")
+    # BOOT at the link's start, ACTIVE and LOST at once (state changes), each
+    # state's heartbeats together, then LOST again and again.
+    assert [s for k, s in enumerate(states) if k == 0 or s != states[k - 1]] == [1, 4, 8]
+    assert states.count(8) >= 5
+    # The period is kept, never shortened: a periodic heartbeat waits a whole
+    # period after the previous one, so over the sender's lifetime there are
+    # at most lifetime / period of them besides the three state changes
+    # (a busy machine only makes fewer; a heartbeat per loop turn fails).
+    sent = out.stats()["heartbeats"]
+    assert len(beats) <= sent <= 3 + elapsed_s / period_s + 1
 
 
 def test_tcp_link_that_goes_away_is_reopened(caplog: pytest.LogCaptureFixture) -> None:
@@ -231,37 +249,81 @@ def test_tcp_link_that_goes_away_is_reopened(caplog: pytest.LogCaptureFixture) -
     out = MavlinkOutput(MavlinkConfig(connect=f"tcp:127.0.0.1:{port}", reconnect_s=0.1,
                                       stale_s=30.0))
     stop = threading.Event()
-    slowest = [0.0]
+    published = [0]
 
     def feed() -> None:
-        i = 0
         while not stop.is_set():
-            t = time.perf_counter()
+            i = published[0]
             out.publish(track_result(T0 + i * DT, [0.001 * i, 0, 0]))
-            slowest[0] = max(slowest[0], time.perf_counter() - t)
-            i += 1
-            stop.wait(0.02)
+            published[0] = i + 1
+            stop.wait(0.02)  # the camera's pace
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + WAIT_S
         while out.stats()["link_errors"] < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert out.stats()["link_errors"] >= 3 and not out.stats()["link_up"]
         for _round in range(2):
             peer = start_peer(f"tcpin:127.0.0.1:{port}")
-            peer.wait_for(count("ODOMETRY", 5), 30, "poses over tcp")
+            peer.wait_for(count("ODOMETRY", 5), WAIT_S, "poses over tcp")
             peer.stop()
     finally:
         stop.set()
-        feeder.join(5)
-        out.close()
+        feeder.join(WAIT_S)
+        out.close(WAIT_S)
+    assert not feeder.is_alive()
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     failed = [w for w in warnings if "retrying every" in w]
     reopened = [w for w in warnings if "open again" in w]
     assert len(reopened) == 2 and 2 <= len(failed) <= 3, warnings  # one per spell
-    assert slowest[0] < 0.25  # generous: a busy 2-core machine, but never a connect timeout
+    # Every result published is accounted for: sent, found the link down, or
+    # dropped from the full queue; nothing is lost silently.
+    s = out.stats()
+    assert s["results"] + s["dropped"] == published[0], s
+    assert s["poses_sent"] + s["not_sent"] == s["results"], s
+
+
+class BlockingConnect:
+    """mavutil stand-in whose connections hang in their open until released:
+    a TCP connect or a serial open that takes its time."""
+
+    def __init__(self, real) -> None:
+        self.mavlink = real.mavlink
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def mavlink_connection(self, *args, **kwargs):
+        self.entered.set()
+        self.release.wait(WAIT_S)
+        raise OSError("connection timed out")
+
+
+def test_publish_never_waits_for_the_link(monkeypatch: pytest.MonkeyPatch) -> None:
+    """publish() returns while the sender thread is stuck opening the link:
+    the loop never waits on a socket or a serial port."""
+    import onboard.mavlink_out as mavlink_out
+
+    fake = BlockingConnect(mavlink_out.load_mavutil())
+    monkeypatch.setattr(mavlink_out, "load_mavutil", lambda: fake)
+    out = MavlinkOutput(MavlinkConfig(connect="tcp:127.0.0.1:9", queue_frames=4))
+    try:
+        assert fake.entered.wait(WAIT_S)  # the sender is inside the open now
+        done = threading.Event()
+
+        def publish_all() -> None:
+            for i in range(10):
+                out.publish(track_result(T0 + i * DT, [0.0, 0.0, 0.0]))
+            done.set()
+
+        threading.Thread(target=publish_all, daemon=True).start()
+        assert done.wait(WAIT_S)  # would time out if publish() waited for the sender
+        assert not fake.release.is_set()  # ... which is still stuck
+        assert out.stats()["dropped"] == 6  # the queue holds 4; the oldest went, counted
+    finally:
+        fake.release.set()
+        out.close(WAIT_S)
 
 
 def test_feed_over_a_shared_autopilot_link() -> None:
@@ -275,12 +337,12 @@ def test_feed_over_a_shared_autopilot_link() -> None:
     link.start()
     out = None
     try:
-        assert link.connected.wait(30)
+        assert link.connected.wait(WAIT_S)
         out = MavlinkOutput(MavlinkConfig(connect="unused:0", stale_s=30.0), link=link)
         for i in range(5):
             out.publish(track_result(T0 + i * DT, [0.03 * i, 2.0, -1.5], R_W_C))
-        peer.wait_for(count("ODOMETRY", 5), 30, "poses over the shared link")
-        peer.wait_for(count("TIMESYNC", 2), 30, "timesync over the shared link")
+        peer.wait_for(count("ODOMETRY", 5), WAIT_S, "poses over the shared link")
+        peer.wait_for(count("TIMESYNC", 2), WAIT_S, "timesync over the shared link")
     finally:
         if out is not None:
             out.close()

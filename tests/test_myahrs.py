@@ -20,7 +20,7 @@ from drivers.attitude import AttitudeBuffer
 from drivers.myahrs import MyAhrsDriver, MyAhrsParser, checksum, command, startup_commands
 
 DEVICE = Path(__file__).resolve().parent / "peers" / "myahrs_device.py"
-WAIT_S = 30.0  # generous: a busy 2-core CI machine
+WAIT_S = 60.0  # generous: a busy 2-core CI machine
 
 
 # --------------------------------------------------------------------------- protocol
@@ -150,8 +150,12 @@ def device(tmp_path: Path):
 
 
 def start_driver(device: DeviceProcess, **kwargs) -> tuple[MyAhrsDriver, AttitudeBuffer, list]:
+    """The driver on the device's link. Silence handling is off unless a test
+    asks for it (silence_s): a stall of this machine must not look like a
+    device that forgot its settings."""
     buf = AttitudeBuffer(max_age_s=0.25)
     readings: list = []
+    kwargs = {"silence_s": 10 * WAIT_S, "reopen_after_s": 20 * WAIT_S, **kwargs}
     drv = MyAhrsDriver(str(device.link), buf.push, reconnect_min_s=0.05, reconnect_max_s=0.5,
                        on_reading=readings.append, **kwargs)
     drv.start()
@@ -163,24 +167,41 @@ def wait_samples(buf: AttitudeBuffer, more: int) -> None:
     assert buf.wait_for_samples(target, WAIT_S), f"samples stuck at {buf.stats.pushed}"
 
 
+def wait_fresh_attitude(buf: AttitudeBuffer) -> bool:
+    """True once the buffer serves the newest sample's attitude (it is not
+    older than max_age_s): checked as each sample arrives, so a stalled test
+    thread only makes it check again, up to WAIT_S."""
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        pushed = buf.stats.pushed
+        if buf.rotation_at(buf.newest().t_s) is not None:
+            return True
+        buf.wait_for_samples(pushed + 1, max(0.0, deadline - time.monotonic()))
+    return False
+
+
 def test_driver_configures_the_device_and_reads_samples(device) -> None:
+    started_ns = time.monotonic_ns()
     drv, buf, readings = start_driver(device, divider=2, latency_ms=5.0)
     try:
+        # The divider asked for (100 Hz / 2 = 50 Hz) is the one the device took.
         assert device.expect("configured") == "configured divider=2"
         t0 = time.monotonic()
         wait_samples(buf, 20)
-        rate = 20 / (time.monotonic() - t0)
-        assert 10 < rate < 80  # 100 / divider = 50 Hz
+        print(f"20 samples in {time.monotonic() - t0:.2f} s (divider 2: 50 Hz)")
         # Values and order: sample `seq` is a yaw of seq * 0.01 rad, scalar last.
+        got = list(readings)  # the driver thread keeps appending
+        assert [x.seq for x in got] == list(range(len(got)))  # every sample, in order
         r = readings[-1]
         assert r.q_xyzw[2] == pytest.approx(math.sin(0.005 * r.seq), abs=1e-6)
         assert r.q_xyzw[3] == pytest.approx(math.cos(0.005 * r.seq), abs=1e-6)
-        newest = buf.newest()
-        assert newest.t_ns == r.t_ns - 5_000_000  # latency compensation
-        assert 0 <= time.monotonic_ns() - r.t_ns < 5e9
-        assert buf.rotation_at(newest.t_s) is not None
+        newest = buf.newest()  # (the reading after it may be in, the sample not yet)
+        assert newest.t_ns + 5_000_000 in {x.t_ns for x in list(readings)}  # latency removed
+        assert started_ns <= r.t_ns <= time.monotonic_ns()  # stamped on our monotonic clock
+        assert wait_fresh_attitude(buf)
         s = drv.stats
         assert s.opens == 1 and s.parser.replies == 3 and s.parser.checksum_errors == 0
+        assert s.parser.reply_errors == 0
     finally:
         assert drv.stop(10)
 
@@ -196,7 +217,8 @@ def test_driver_counts_faults_and_keeps_reading(device) -> None:
         p = drv.stats.parser
         assert (p.checksum_errors, p.partial_lines, p.garbage_lines) == (3, 2, 4)
         assert p.malformed == 0 and drv.stats.disconnects == 0
-        # Samples skip exactly the broken sentences' sequence numbers.
+        # Samples skip exactly the broken sentences' sequence numbers (the
+        # device makes no sample while its output waits: none lost there).
         seqs = [r.seq for r in readings]
         assert seqs == sorted(seqs) and seqs[-1] - seqs[0] + 1 - len(seqs) == 5
     finally:
@@ -204,19 +226,21 @@ def test_driver_counts_faults_and_keeps_reading(device) -> None:
 
 
 def test_driver_survives_silence(device) -> None:
-    drv, buf, _ = start_driver(device, silence_s=0.3, reopen_after_s=30.0)
+    drv, buf, _ = start_driver(device, silence_s=0.3, reopen_after_s=10 * WAIT_S)
     try:
         device.expect("configured")
         wait_samples(buf, 10)
-        device.send("silence 1.5", "silent")
-        # No sample for longer than max_age_s: the buffer answers "no attitude".
-        assert drv.counters.wait_for(lambda s: s.silences >= 1, WAIT_S)
-        newest = buf.newest()
-        assert buf.rotation_at(newest.t_s) is None
+        device.send("silence 3", "silent")  # (a stall of this machine may count one before)
+        before = drv.stats.silences
+        # The driver notices (0.3 s without a sample): the newest sample is then
+        # older than max_age_s, and the silence lasts long after, so the buffer
+        # answers "no attitude".
+        assert drv.counters.wait_for(lambda s: s.silences > before, WAIT_S)
+        assert buf.rotation_at(buf.newest().t_s) is None
         device.expect("configured")  # the driver re-sent the start-up commands
         device.expect("talking")
         wait_samples(buf, 10)
-        assert buf.rotation_at(buf.newest().t_s) is not None
+        assert wait_fresh_attitude(buf)
         assert drv.stats.disconnects == 0 and drv.alive
     finally:
         assert drv.stop(10)
@@ -230,6 +254,7 @@ def test_driver_reopens_a_replugged_device(device) -> None:
         first_tty = os.readlink(device.link)
         device.send("unplug", "unplugged")
         assert drv.counters.wait_for(lambda s: s.disconnects == 1, WAIT_S)
+        old_device = len(readings)  # the port is closed: nothing more from it
         # Absent: the driver keeps trying (the symlink is gone, as udev removes it).
         # Four failed opens take >= 0.75 s of backoff (0.05 + 0.1 + 0.2 + 0.4):
         # the newest sample is then older than max_age_s, so "no attitude".
@@ -244,7 +269,9 @@ def test_driver_reopens_a_replugged_device(device) -> None:
         assert buf.stats.pushed > before
         assert s.parser.checksum_errors == 0 and s.parser.garbage_lines == 0
         assert s.parser.partial_lines <= 1  # at most the sentence the unplug cut
-        assert readings[-1].seq < 1000  # the new device counts from 0 again
+        assert readings[old_device].seq == 0  # the new device counts from 0 again
+        new_seqs = [r.seq for r in readings[old_device:]]
+        assert new_seqs == list(range(len(new_seqs)))  # every sample, in order
         assert os.path.islink(device.link) and first_tty.startswith("/dev/pts/")
         # A second unplug/replug round works the same.
         device.send("unplug", "unplugged")
@@ -253,16 +280,17 @@ def test_driver_reopens_a_replugged_device(device) -> None:
         wait_samples(buf, 10)
         assert drv.stats.opens == 3
     finally:
-        t0 = time.monotonic()
-        assert drv.stop(10)
-        assert time.monotonic() - t0 < 2.0
+        assert drv.stop(10)  # the pending read is cancelled (a stop time is measured, not asserted)
+    print(f"driver stop time {drv.last_stop_s * 1e3:.1f} ms")
 
 
 def test_driver_stops_while_the_device_is_absent(tmp_path: Path) -> None:
+    """stop() cuts the reconnect backoff short: after the first failed open
+    the driver would wait 10 min for the next try."""
     buf = AttitudeBuffer()
-    drv = MyAhrsDriver(str(tmp_path / "nothing"), buf.push, reconnect_min_s=0.05,
-                       reconnect_max_s=5.0)
+    drv = MyAhrsDriver(str(tmp_path / "nothing"), buf.push, reconnect_min_s=600.0,
+                       reconnect_max_s=600.0)
     drv.start()
-    assert drv.counters.wait_for(lambda s: s.open_failures >= 3, WAIT_S)
-    assert drv.stop(10) and drv.last_stop_s < 1.0
-    assert buf.stats.pushed == 0
+    assert drv.counters.wait_for(lambda s: s.open_failures >= 1, WAIT_S)
+    assert drv.stop(WAIT_S)  # False (still alive) if it had to sleep the backoff out
+    assert drv.stats.open_failures == 1 and buf.stats.pushed == 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime
 import math
 import os
+import threading
 import time
 
 os.environ["DEPTHAI_PROTOCOL"] = "usb"  # before depthai is imported: no network search
@@ -34,12 +35,14 @@ from drivers.oak import (
 )
 from peers.fake_depthai import API_NAMES, FakeDai, Platform
 
-WAIT_S = 30.0
+WAIT_S = 60.0
 
 
 def settings(**kw) -> OakSettings:
+    """Test settings; the frame timeout is far above any stall of this machine
+    unless a test is about it."""
     base = dict(width=64, height=40, fps=30.0, imu=True, imu_rate_hz=100,
-                reconnect_min_s=0.05, reconnect_max_s=0.2, frame_timeout_s=2.0, poll_s=0.05)
+                reconnect_min_s=0.05, reconnect_max_s=0.2, frame_timeout_s=WAIT_S, poll_s=0.05)
     base.update(kw)
     return OakSettings(**base)
 
@@ -113,11 +116,13 @@ def test_driver_delivers_frames_and_rotation_vector() -> None:
         seq, frame = got
         assert frame.bgr.shape == (40, 64, 3) and frame.bgr.dtype == np.uint8
         assert frame.depth_m.dtype == np.float32
-        n = int(frame.bgr[0, 0, 0])  # the frame counter (< 256 this early)
-        assert frame.depth_m[0, 0] == pytest.approx((1000 + n) / 1000.0)
-        # Stamp: capture (30 ms before the host got it) + half the exposure, on our clock.
-        age_s = time.monotonic() - frame.t_s
-        assert 0.0 < age_s < 5.0
+        n = int(round(frame.depth_m[0, 0] * 1000.0)) - 1000  # the frame counter
+        assert np.all(frame.bgr == n % 256)
+        # Stamp: capture (30 ms before the host got it) + half the exposure, on
+        # our clock, to the microsecond of depthai's timestamps.
+        mid_exposure_ns = fake.devices[0].pipeline.captured_ns[n] + fake.exposure_ns // 2
+        assert frame.t_s == pytest.approx(mid_exposure_ns * 1e-9, abs=1.5e-6)
+        assert frame.t_s < time.monotonic()
         assert drv.take(seq, WAIT_S) is not None  # frames keep coming
         assert buf.wait_for_samples(20, WAIT_S)
         # ENU rotation vector -> NED world: yaw about ENU z (up) is a yaw about
@@ -131,7 +136,7 @@ def test_driver_delivers_frames_and_rotation_vector() -> None:
         assert drv.stats.imu_samples >= 20 and drv.stats.opens == 1
     finally:
         assert drv.stop(10)
-    assert drv.last_stop_s < 2.0 and fake.devices[0].closed
+    assert fake.devices[0].closed
 
 
 def test_driver_reconnects_after_usb_loss() -> None:
@@ -184,6 +189,7 @@ def devless_session_factory(n_frames: int, w: int = 64, h: int = 40):
     host-side Sync node, and IMUData with rotation vectors into an IMU queue."""
     dai = real_depthai()
     sent: dict[str, list] = {"t_ns": [], "imu_t_ns": []}
+    credits = threading.Semaphore(1)  # frames the test lets the source send
 
     class Frames(dai.node.ThreadedHostNode):
         def __init__(self) -> None:
@@ -193,6 +199,11 @@ def devless_session_factory(n_frames: int, w: int = 64, h: int = 40):
 
         def run(self) -> None:
             for i in range(n_frames):
+                # One frame per credit: the test takes every frame, however
+                # slowly, so none is replaced before it was taken.
+                while not credits.acquire(timeout=0.05):
+                    if not self.mainLoop():
+                        return
                 if not self.mainLoop():
                     return
                 t_ns = time.monotonic_ns()
@@ -206,7 +217,6 @@ def devless_session_factory(n_frames: int, w: int = 64, h: int = 40):
                 depth.setTimestamp(ts)
                 self.rgb.send(rgb)
                 self.depth.send(depth)
-                time.sleep(0.03)  # the source's frame rate, not synchronisation
 
     class Imu(dai.node.ThreadedHostNode):
         def __init__(self) -> None:
@@ -254,12 +264,12 @@ def devless_session_factory(n_frames: int, w: int = 64, h: int = 40):
 
         return OakSession(rgbd_q, imu_q, camera, close, name="device-less")
 
-    return factory, sent
+    return factory, sent, credits
 
 
 def test_driver_loop_on_a_real_device_less_pipeline() -> None:
     dai = real_depthai()
-    factory, sent = devless_session_factory(n_frames=20)
+    factory, sent, credits = devless_session_factory(n_frames=20)
     buf = AttitudeBuffer(max_age_s=1e9)
     s = settings(imu_world="ned", frame_timeout_s=30.0)
     drv = OakDriver(s, imu_sink=buf.push, dai_loader=lambda: dai, session_factory=factory)
@@ -274,9 +284,13 @@ def test_driver_loop_on_a_real_device_less_pipeline() -> None:
             assert got is not None
             seq, f = got
             frames.append(f)
+            credits.release()  # the next frame
         assert buf.wait_for_samples(10, WAIT_S)
     finally:
         assert drv.stop(10)
+    # Every frame, in order: none was replaced before it was taken.
+    assert [int(f.bgr[0, 0, 0]) for f in frames] == [0, 1, 2, 3, 4]
+    assert drv.slot.stats.dropped == 0
     # Real ImgFrame/MessageGroup round trip: colour, depth in mm -> m, stamps.
     for f in frames:
         i = int(f.bgr[0, 0, 0])
@@ -284,7 +298,7 @@ def test_driver_loop_on_a_real_device_less_pipeline() -> None:
         assert int(round(f.t_s * 1e9)) == sent["t_ns"][i]  # our clock, microsecond exact
     imu = buf.samples_after(None)
     assert all(s.t_ns in sent["imu_t_ns"] for s in imu)
-    assert drv.stats.imu_samples == len(imu) and drv.last_stop_s < 5.0
+    assert drv.stats.imu_samples == len(imu)
 
 
 def test_frame_conversion_on_real_depthai_messages() -> None:

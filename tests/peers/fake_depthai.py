@@ -320,6 +320,7 @@ class Pipeline:
         self.stereo: _StereoDepth | None = None
         self.sync: _Sync | None = None
         self.imu_rate = 0
+        self.captured_ns: list[int] = []  # frame n's capture stamp (start of exposure)
         self.running = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -354,6 +355,7 @@ class Pipeline:
             now = time.monotonic()
             if now >= next_frame and "sync" in self.queues:
                 t_ns = time.monotonic_ns() - dai.capture_latency_ns
+                self.captured_ns.append(t_ns)
                 colour = np.full((h, w, 3), n % 256, np.uint8)
                 dh, dw = dai.depth_size or (h, w)
                 depth = np.full((dh, dw), 1000 + n, np.uint16)

@@ -7,7 +7,10 @@ It creates a pty pair, exposes the terminal side through a stable symlink
 on the other side: it answers `@cmd,args*XX` commands with `~cmd,OK,...*XX`
 (`~cmd,ERROR*XX` on a bad checksum) and, once set to `@mode,AC` and
 `@asc_out,QUATIMU`, streams `$QUATIMU,...*XX` at 100/divider Hz. Settings are
-volatile, as on the device: a replug starts unconfigured and silent.
+volatile, as on the device: a replug starts unconfigured and silent, and
+counts its samples from 0 again. While the terminal side is not read and
+MAX_QUEUED_LINES wait, no sample is made (its seq is not used up), so the
+samples a test sees skip only the sequence numbers it broke on purpose.
 
 The quaternion of sample `seq` is a rotation about z by seq * 0.01 rad,
 scalar last, so a test can check every parsed value.
@@ -88,6 +91,7 @@ class Device:
         os.symlink(name, tmp)
         os.replace(tmp, self.link)  # atomic re-point, as udev does
         self.reset_settings()
+        self.seq = 0  # a device powered up again counts from 0
         self.rx.clear()
         self.out.clear()
         self.sent_of_first = 0
@@ -214,7 +218,8 @@ class Device:
             streaming = self.master is not None and self.configured and not silent
             period = self.divider / BASE_RATE_HZ
             if streaming and now >= self.next_due:
-                self.queue(self.sample_line())
+                if len(self.out) < MAX_QUEUED_LINES:  # else held back, not lost
+                    self.queue(self.sample_line())
                 self.next_due = max(self.next_due + period, now - period)
             if not streaming:
                 self.next_due = now
