@@ -6,9 +6,11 @@ aligned, z down) with `to_body_sample`, using the AHRS-to-body rotation from
 config, and push them into an `AttitudeBuffer`. The buffer implements
 `onboard.frames.AttitudeSource`: `rotation_at(t_s)` slerps between the two
 samples around `t_s` and returns R_W_C = R_W_B(t) R_B_C with the camera
-mount, or None ("no attitude") when the newest sample is older than
-`max_age_s`, the query lies outside the buffered span, or the two samples
-around it are further apart than `max_gap_s` (an outage).
+mount, or None ("no attitude") when the query lies outside the buffered span
+or the two samples around it are further apart than `max_gap_s` (an outage).
+A frame captured while the AHRS was talking keeps its attitude however late
+the loop gets to it (a stalled machine, a busy core); one captured after the
+AHRS went silent lies beyond the newest sample and has none.
 
 All stamps are capture times on one monotonic clock in nanoseconds
 (`time.monotonic_ns` live; a replay clock on the recording's time base in
@@ -20,8 +22,6 @@ from __future__ import annotations
 import bisect
 import math
 import threading
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,17 +163,13 @@ class AttitudeBuffer:
         self,
         R_B_C: np.ndarray | None = None,
         capacity: int = 1024,
-        max_age_s: float = 0.25,
         max_gap_s: float = 0.1,
-        clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         if capacity < 2:
             raise ValueError("attitude buffer capacity must be >= 2")
         self.R_B_C = np.eye(3) if R_B_C is None else np.asarray(R_B_C, dtype=np.float64)
         self.capacity = int(capacity)
-        self.max_age_s = float(max_age_s)
         self.max_gap_s = float(max_gap_s)
-        self.clock_ns = clock_ns
         self._lock = threading.Lock()
         self._t_s: list[float] = []
         self._samples: list[AttitudeSample] = []
@@ -216,12 +212,11 @@ class AttitudeBuffer:
 
     def body_quat_at(self, t_s: float) -> Quat | None:
         """q_W_B_xyzw at `t_s` slerped between its neighbours, or None."""
-        now_s = self.clock_ns() * 1e-9
         with self._lock:
             ts = self._t_s
             n = len(ts)
-            if n == 0 or not (now_s - ts[-1] <= self.max_age_s):
-                return None  # nothing, or the newest sample is stale
+            if n == 0:
+                return None
             lo = max(0, n - self.capacity)
             if not (ts[lo] <= t_s <= ts[-1]):  # also rejects NaN
                 return None

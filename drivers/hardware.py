@@ -9,7 +9,6 @@ that reads the config sections ([ahrs], [myahrs], [autopilot], [oak] and the
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -32,11 +31,10 @@ def camera_mount_q(cfg: Config) -> Quat:
     return matrix_to_quat(mount_rotation(cfg.mavlink.mount, cfg.mavlink.mount_q_B_C_xyzw))
 
 
-def make_attitude_buffer(cfg: Config, clock_ns: Callable[[], int] = time.monotonic_ns
-                         ) -> AttitudeBuffer:
+def make_attitude_buffer(cfg: Config) -> AttitudeBuffer:
     a = cfg.ahrs
     R_B_C = mount_rotation(cfg.mavlink.mount, cfg.mavlink.mount_q_B_C_xyzw)
-    return AttitudeBuffer(R_B_C, a.buffer_samples, a.max_age_s, a.max_gap_s, clock_ns)
+    return AttitudeBuffer(R_B_C, a.buffer_samples, a.max_gap_s)
 
 
 def oak_settings(cfg: Config, imu: bool) -> OakSettings:

@@ -246,7 +246,7 @@ def record(
         from sim_replay.sources import open_replay
 
         rp = open_replay(replay_dir, speed=replay_speed, buffer_capacity=cfg.ahrs.buffer_samples,
-                         max_age_s=cfg.ahrs.max_age_s, max_gap_s=cfg.ahrs.max_gap_s,
+                         max_gap_s=cfg.ahrs.max_gap_s,
                          assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort)
         camera, buffer, sources = rp.camera, rp.buffer, rp
         result = RecordResult(out_dir, f"replay of {Path(replay_dir)}", rp.attitude_label)

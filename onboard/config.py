@@ -132,7 +132,7 @@ class AhrsConfig:
 
     source: str = "myahrs"  # "myahrs", "autopilot", "oak_imu" or "none"
     buffer_samples: int = 1024  # samples kept (10 s at 100 Hz)
-    max_age_s: float = 0.25  # newest sample older than this = no attitude
+    max_age_s: float = 0.25  # an AHRS this far behind a frame is not waited for (silent)
     max_gap_s: float = 0.1  # no interpolation across a longer gap between samples
 
 
@@ -355,6 +355,9 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.lam": POSITIVE,  # ridge term of Eq. 12: 0 divides by the kernel spectrum alone
     "nislam.label_sigma_cells": NON_NEGATIVE,  # 0 = the paper's delta label
     "nislam.rate_half_window_s": POSITIVE,
+    "nislam.search_radius_m": NON_NEGATIVE,
+    "nislam.search_speed_m_s": NON_NEGATIVE,
+    "nislam.max_coast_s": NON_NEGATIVE,
     # thresholds
     "nislam.psr_keyframe": NON_NEGATIVE,
     "nislam.psr_refine": NON_NEGATIVE,

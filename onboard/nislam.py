@@ -61,7 +61,9 @@ class NislamParams:
     gate_gray: float = 0.1  # |C~ - C_key| for a well-matched cell (Eq. 18, T_c)
     gate_depth_m: float = 0.1  # |Delta - median| for a well-matched cell
     min_matched_cells: int = 200
-    search_radius_m: float = 0.1  # peak search window around the predicted shift
+    search_radius_m: float = 0.1  # peak search window around the predicted shift ...
+    search_speed_m_s: float = 1.5  # ... widened to this speed times the time since the last match
+    max_coast_s: float = 1.0  # frames without a trusted pose for longer than this: restart (reset)
     depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
@@ -91,17 +93,23 @@ class _Key:
     mask0: np.ndarray  # original key mask W_0
     filt: KernelCorrelationFilter
     layers: "_RotationResidual | None" = None
-    shifts: list[tuple[float, float]] = field(default_factory=list)  # last two tracked (du, dv)
+    shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
 
-    @property
-    def predicted_shift(self) -> tuple[float, float]:
-        """Constant-velocity prediction of the next shift against this key."""
+    def predicted_shift(self, t_s: float) -> tuple[float, float]:
+        """Constant-velocity prediction of the shift at `t_s` against this key,
+        in time rather than frames: after dropped frames it moves as far as
+        the camera did."""
         if not self.shifts:
             return (0.0, 0.0)
+        t1, u1, v1 = self.shifts[-1]
         if len(self.shifts) == 1:
-            return self.shifts[-1]
-        (u0, v0), (u1, v1) = self.shifts[-2], self.shifts[-1]
-        return (2 * u1 - u0, 2 * v1 - v0)
+            return (u1, v1)
+        t0, u0, v0 = self.shifts[-2]
+        k = (t_s - t1) / (t1 - t0) if t1 > t0 else 1.0
+        return (u1 + k * (u1 - u0), v1 + k * (v1 - v0))
+
+    def since_last_match_s(self, t_s: float) -> float:
+        return t_s - (self.shifts[-1][0] if self.shifts else self.t_s)
 
 
 @dataclass
@@ -279,18 +287,18 @@ class NislamTracker:
         min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
         if len(cloud) < min_points:
             return self._lost_result(frame.t_s, "too few depth pixels")
-        if self._key is None or self._lost:
+        if self._key is None or self._lost or self._coasted_too_long(frame.t_s):
             return self._restart(frame.t_s, cloud, r_cur)
 
         key = self._key
         finished: list[KeyframeCloud] = []
-        outcome = self._match(key, cloud, r_cur, attitude, t_att)
+        outcome = self._match(key, cloud, frame.t_s, r_cur, attitude, t_att)
         if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
             # The current frame no longer matches the key: make the last trusted
             # frame the key (it matched, so it overlaps both) and try again.
             finished += self._new_key_from(self._prev)
             key = self._key
-            outcome = self._match(key, cloud, r_cur, attitude, t_att)
+            outcome = self._match(key, cloud, frame.t_s, r_cur, attitude, t_att)
         if outcome is None:
             self._lost = True
             return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
@@ -325,13 +333,19 @@ class NislamTracker:
             finished_keyframes=tuple(finished),
         )
 
+    def _coasted_too_long(self, t_s: float) -> bool:
+        """No trusted pose for longer than `max_coast_s`: the key is not
+        matched again (a window that wide invites a look-alike peak)."""
+        return self._prev is not None and t_s - self._prev.t_s > self.p.max_coast_s
+
     def finish(self) -> KeyframeCloud | None:
         """Flush the current key's refined cloud (end of a run)."""
         return None if self._key is None else self._key_cloud(self._key)
 
     # ------------------------------------------------------------ matching
     def _match(
-        self, key: _Key, cloud: Cloud, r_cur: np.ndarray, attitude: AttitudeSource, t_att: float
+        self, key: _Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
+        t_att: float,
     ) -> _Match | None:
         # The key's attitude is looked up again at the current offset estimate,
         # so key and frame share one clock while the offset settles.
@@ -341,9 +355,12 @@ class NislamTracker:
         img = project(cloud, r_rel, self.shape, key.img.res_m)
         if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
             return None
-        radius = max(3, int(self.p.search_radius_m / key.img.res_m))
+        # The search window grows with the time since the last match, so a
+        # stalled loop or dropped frames widen it instead of losing the key.
+        radius_m = max(self.p.search_radius_m, self.p.search_speed_m_s * key.since_last_match_s(t_s))
         peak = find_peak(
-            key.filt.response(_whiten(img)), self.p.psr_exclude_cells, key.predicted_shift, radius
+            key.filt.response(_whiten(img)), self.p.psr_exclude_cells, key.predicted_shift(t_s),
+            max(3, int(radius_m / key.img.res_m)),
         )
         if not peak.psr >= self.p.psr_lost:  # also catches NaN
             return None
@@ -363,7 +380,7 @@ class NislamTracker:
                 self._calibrate(key, r_rel, attitude, t_att, theta)
         if peak.psr > self.p.psr_refine:
             self._refine(key, img, du, dv, depth.tz_m)
-        key.shifts = [*key.shifts[-1:], (peak.du_cells, peak.dv_cells)]
+        key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
         t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
@@ -531,8 +548,10 @@ class NislamTracker:
     def _lost_result(
         self, t_s: float, reason: str, finished: tuple[KeyframeCloud, ...] = ()
     ) -> TrackResult:
-        if self._key is not None:
-            self._lost = True
+        """A frame without a trusted pose. Only a failed match gives up the
+        key (self._lost); a frame without attitude or depth is skipped and the
+        next one is matched against the same key, its search window widened
+        by the time passed (`max_coast_s` bounds how long)."""
         return TrackResult(
             t_s=t_s,
             state=TrackState.LOST if self._key is not None else TrackState.INITIALIZING,

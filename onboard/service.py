@@ -111,9 +111,9 @@ def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
     from sim_replay.sources import open_replay
 
     rp = open_replay(seq_dir, speed=cfg.service.replay_speed,
-                     buffer_capacity=cfg.ahrs.buffer_samples, max_age_s=cfg.ahrs.max_age_s,
-                     max_gap_s=cfg.ahrs.max_gap_s, assoc_max_dt_s=cfg.replay.assoc_max_dt_s,
-                     undistort=cfg.replay.undistort, loop_s=loop_s)
+                     buffer_capacity=cfg.ahrs.buffer_samples, max_gap_s=cfg.ahrs.max_gap_s,
+                     assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort,
+                     loop_s=loop_s)
     passes = rp.passes
     q = matrix_to_quat(rp.buffer.R_B_C)
     mav = dataclasses.replace(cfg.mavlink, mount="custom", mount_q_B_C_xyzw=tuple(q))
@@ -300,9 +300,12 @@ class Service:
             if self.tracker is None and not self._make_tracker(poll):
                 self._idle(outputs, now)
                 continue
+            # Asked before waiting: a last frame put just before the source
+            # closed is still taken on this turn or the next.
+            exhausted = camera.exhausted
             got = camera.take(self._last_seq, poll)
             if got is None:
-                if camera.exhausted:
+                if exhausted:
                     log.info("replay finished")
                     break
                 self._idle(outputs, time.monotonic())
@@ -346,16 +349,18 @@ class Service:
     def _wait_for_attitude(self, t_s: float) -> None:
         """The tracker looks the attitude up at the capture time plus its
         offset estimate; a sample that late may still be on its way (a
-        positive offset, an AHRS a little behind the camera): wait for it,
-        at most `attitude_wait_s`, and only when it is due that soon (a
-        silent AHRS costs no time: the tracker reports it)."""
+        positive offset, an AHRS a little behind the camera, or its thread
+        catching up after the machine stalled): wait for it, at most
+        `attitude_wait_s`, when the AHRS is behind by no more than
+        `[ahrs] max_age_s` (a silent AHRS costs no time: the tracker
+        reports it)."""
         att = self.sources.attitude
         newest = att.newest()
         if newest is not None:  # how far the AHRS is ahead of the frame (negative: behind)
             self.stats.period_att_lead_ms = min(self.stats.period_att_lead_ms,
                                                 (newest.t_s - t_s) * 1e3)
         need_s = t_s + max(0.0, self._offset_s) + ATTITUDE_MARGIN_S
-        if newest is not None and 0.0 < need_s - newest.t_s <= self.sc.attitude_wait_s:
+        if newest is not None and 0.0 < need_s - newest.t_s <= self.cfg.ahrs.max_age_s:
             att.wait_covered(need_s, self.sc.attitude_wait_s)
 
     def _idle(self, outputs: Output, now: float) -> None:

@@ -2,8 +2,7 @@
 through the same interfaces as the hardware drivers.
 
 - `ReplayClock` maps our monotonic clock onto the recording's time base, so
-  replayed stamps stay the recording's own and the attitude buffer's
-  staleness check ("newest sample older than max_age_s") works as live.
+  replayed stamps stay the recording's own.
 - `ReplayCamera` is a `drivers.camera.CameraSource`: it publishes each frame
   into a newest-frame slot FRAME_DELIVERY_S after the replay clock reaches
   its stamp (decoding it before), and closes the slot after the last one.
@@ -75,7 +74,7 @@ class ReplayClock:
         return self.t0_s + (self.mono_ns() - start) * 1e-9 * self.speed
 
     def now_ns(self) -> int:
-        """Recording time in ns: the clock an AttitudeBuffer checks staleness on."""
+        """Recording time in ns."""
         return int(round(self.now_s() * 1e9))
 
     def wait_until(self, t_s: float, stop: threading.Event) -> bool:
@@ -243,7 +242,6 @@ def open_replay(
     *,
     speed: float = 1.0,
     buffer_capacity: int = 1024,
-    max_age_s: float = 0.25,
     max_gap_s: float = 0.2,
     assoc_max_dt_s: float = 0.02,
     undistort: bool = True,
@@ -272,7 +270,7 @@ def open_replay(
         R_B_C = np.eye(3)
     else:
         traj, label, R_B_C = None, "none", quat_to_matrix(tuple(seq.camera.q_B_C_xyzw))
-    buffer = AttitudeBuffer(R_B_C, buffer_capacity, max_age_s, max_gap_s, clock.now_ns)
+    buffer = AttitudeBuffer(R_B_C, buffer_capacity, max_gap_s)
     attitude = None
     if traj is not None:
         keep = (traj.t_s >= t_first - PREROLL_S) & (traj.t_s <= t_last + TAIL_S)

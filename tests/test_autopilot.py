@@ -138,7 +138,7 @@ def test_link_dispatches_sends_and_reconnects() -> None:
 
 def test_attitude_source_maps_and_filters_messages() -> None:
     link = FcLink("udpout:127.0.0.1:9")  # never started: messages are fed by hand
-    buf = AttitudeBuffer(max_age_s=1e9)
+    buf = AttitudeBuffer()
     src = AutopilotAttitude(link, buf.push, target_system=1, target_component=1)
     q = Rotation.from_euler("zyx", [30, 10, -5], degrees=True).as_quat()  # x, y, z, w
     att = dict(q1=q[3], q2=q[0], q3=q[1], q4=q[2])  # MAVLink: w, x, y, z
@@ -245,9 +245,7 @@ def check_samples_against_the_messages(buf: AttitudeBuffer, heard: Heard) -> lis
 def test_autopilot_attitude_against_a_pymavlink_peer() -> None:
     port = free_udp_port()
     peer = Peer(port, boot_age_s=123.0)
-    # Staleness is the buffer's own test (test_drivers.py); a busy machine may
-    # hold this thread back longer than any max_age_s.
-    buf = AttitudeBuffer(max_age_s=1e9)
+    buf = AttitudeBuffer()
     link = FcLink(f"udpout:127.0.0.1:{port}", reconnect_min_s=0.05)
     heard = Heard(link)
     # retry_s far above any stall of this machine: the one request must do.
@@ -288,7 +286,7 @@ def test_autopilot_reboot_is_followed() -> None:
     requests it again, the new boot clock replaces the old mapping."""
     port = free_udp_port()
     peer = Peer(port, boot_age_s=500.0)
-    buf = AttitudeBuffer(max_age_s=1e9)
+    buf = AttitudeBuffer()
     link = FcLink(f"udpout:127.0.0.1:{port}")
     heard = Heard(link)
     src = AutopilotAttitude(link, buf.push, rate_hz=50.0, retry_s=0.3)

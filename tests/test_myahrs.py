@@ -153,7 +153,7 @@ def start_driver(device: DeviceProcess, **kwargs) -> tuple[MyAhrsDriver, Attitud
     """The driver on the device's link. Silence handling is off unless a test
     asks for it (silence_s): a stall of this machine must not look like a
     device that forgot its settings."""
-    buf = AttitudeBuffer(max_age_s=0.25)
+    buf = AttitudeBuffer()
     readings: list = []
     kwargs = {"silence_s": 10 * WAIT_S, "reopen_after_s": 20 * WAIT_S, **kwargs}
     drv = MyAhrsDriver(str(device.link), buf.push, reconnect_min_s=0.05, reconnect_max_s=0.5,
@@ -168,15 +168,15 @@ def wait_samples(buf: AttitudeBuffer, more: int) -> None:
 
 
 def wait_fresh_attitude(buf: AttitudeBuffer) -> bool:
-    """True once the buffer serves the newest sample's attitude (it is not
-    older than max_age_s): checked as each sample arrives, so a stalled test
-    thread only makes it check again, up to WAIT_S."""
-    deadline = time.monotonic() + WAIT_S
+    """True once a frame captured from now on gets an attitude: the AHRS
+    passes the present with samples close enough together to interpolate
+    between. Checked as each sample arrives, up to WAIT_S."""
+    t_frame = time.monotonic()
+    deadline = t_frame + WAIT_S
     while time.monotonic() < deadline:
-        pushed = buf.stats.pushed
-        if buf.rotation_at(buf.newest().t_s) is not None:
+        if buf.rotation_at(t_frame) is not None:
             return True
-        buf.wait_for_samples(pushed + 1, max(0.0, deadline - time.monotonic()))
+        buf.wait_covered(t_frame, max(0.0, deadline - time.monotonic()))
     return False
 
 
@@ -232,11 +232,10 @@ def test_driver_survives_silence(device) -> None:
         wait_samples(buf, 10)
         device.send("silence 3", "silent")  # (a stall of this machine may count one before)
         before = drv.stats.silences
-        # The driver notices (0.3 s without a sample): the newest sample is then
-        # older than max_age_s, and the silence lasts long after, so the buffer
-        # answers "no attitude".
+        # The driver notices (0.3 s without a sample); a frame captured during
+        # the silence lies beyond the newest sample: "no attitude".
         assert drv.counters.wait_for(lambda s: s.silences > before, WAIT_S)
-        assert buf.rotation_at(buf.newest().t_s) is None
+        assert buf.rotation_at(time.monotonic()) is None
         device.expect("configured")  # the driver re-sent the start-up commands
         device.expect("talking")
         wait_samples(buf, 10)
@@ -257,9 +256,9 @@ def test_driver_reopens_a_replugged_device(device) -> None:
         old_device = len(readings)  # the port is closed: nothing more from it
         # Absent: the driver keeps trying (the symlink is gone, as udev removes it).
         # Four failed opens take >= 0.75 s of backoff (0.05 + 0.1 + 0.2 + 0.4):
-        # the newest sample is then older than max_age_s, so "no attitude".
+        # a frame captured meanwhile has "no attitude".
         assert drv.counters.wait_for(lambda s: s.open_failures >= 4, WAIT_S)
-        assert buf.rotation_at(buf.newest().t_s) is None
+        assert buf.rotation_at(time.monotonic()) is None
         before = buf.stats.pushed
         device.send("replug", "plugged")
         device.expect("configured")  # settings are volatile: sent again on reopen

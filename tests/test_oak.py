@@ -105,7 +105,7 @@ def test_bmi_imu_gives_no_rotation_vector_and_rvc4_aligns_with_imagealign() -> N
 
 def test_driver_delivers_frames_and_rotation_vector() -> None:
     fake = FakeDai(exposure_ns=8_000_000, capture_latency_ns=30_000_000, imu_yaw_rate=0.5)
-    buf = AttitudeBuffer(max_age_s=0.5)
+    buf = AttitudeBuffer()
     drv = OakDriver(settings(), imu_sink=buf.push, dai_loader=lambda: fake)
     drv.start()
     try:
@@ -270,7 +270,7 @@ def devless_session_factory(n_frames: int, w: int = 64, h: int = 40):
 def test_driver_loop_on_a_real_device_less_pipeline() -> None:
     dai = real_depthai()
     factory, sent, credits = devless_session_factory(n_frames=20)
-    buf = AttitudeBuffer(max_age_s=1e9)
+    buf = AttitudeBuffer()
     s = settings(imu_world="ned", frame_timeout_s=30.0)
     drv = OakDriver(s, imu_sink=buf.push, dai_loader=lambda: dai, session_factory=factory)
     drv.start()

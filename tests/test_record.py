@@ -184,9 +184,7 @@ def test_replay_camera_skips_frames_already_stale_and_counts_them(tmp_path: Path
 
 def test_replay_drivers_play_at_the_recording_pace(tmp_path: Path) -> None:
     seq_dir = make_sequence(tmp_path / "seq", n_frames=15)
-    # The buffer's staleness check has its own tests (test_drivers.py); here a
-    # busy machine may hold this thread back longer than max_age_s.
-    rp = open_replay(seq_dir, max_age_s=WAIT_S)
+    rp = open_replay(seq_dir)
     t0 = time.monotonic()
     rp.start()
     seen = []
