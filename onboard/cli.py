@@ -246,13 +246,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(stats, allow_nan=False))
         return 0
-    kf = stats["keyframe_frames_ms_median"]
     print(f"{stats['sequence']}: {stats['tracker']}, {stats['frames']} frames x {stats['repeat']}")
     print(f"per frame: median {stats['frame_ms_median']:.2f} ms, "
           f"p95 {stats['frame_ms_p95']:.2f} ms, max {stats['frame_ms_max']:.2f} ms "
           f"-> {stats['hz']:.0f} Hz")
-    if kf is not None:
-        print(f"key-frame frames: {stats['keyframe_frames']}, median {kf:.2f} ms")
+    kinds = [(label, stats[f"{kind}_frames"], stats[f"{kind}_frames_ms_median"])
+             for kind, label in (("keyframe", "new key"), ("reused", "key re-used"),
+                                 ("plain", "other"))]
+    print("median by frame kind: " + ", ".join(
+        f"{label} {ms:.2f} ms ({n})" for label, n, ms in kinds if ms is not None))
     return 0
 
 

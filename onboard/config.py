@@ -358,6 +358,8 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.search_radius_m": NON_NEGATIVE,
     "nislam.search_speed_m_s": NON_NEGATIVE,
     "nislam.max_coast_s": NON_NEGATIVE,
+    "nislam.reuse_max_angle_deg": Range(lo=0.0, hi=90.0),  # optical axes apart by 90 deg share no view
+    "nislam.reuse_max_dist_m": NON_NEGATIVE,
     # thresholds
     "nislam.psr_keyframe": NON_NEGATIVE,
     "nislam.psr_refine": NON_NEGATIVE,

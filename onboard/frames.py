@@ -114,6 +114,7 @@ class TrackResult:
     attitude_offset_s: float
     matched_cells: int
     finished_keyframes: tuple[KeyframeCloud, ...] = ()
+    keyframe_reused: bool = False  # the frame switched to a key kept from before (not a new one)
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

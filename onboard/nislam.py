@@ -18,6 +18,7 @@ Per frame (ref. "Per-frame order"):
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -34,6 +35,7 @@ from onboard.frames import (
     TrackState,
 )
 from onboard.geometry import so3_log
+from onboard.keymap import KeyframeMap
 from onboard.projection import AxonometricImage, Cloud, adaptive_resolution, make_cloud, project
 
 
@@ -64,6 +66,10 @@ class NislamParams:
     search_radius_m: float = 0.1  # peak search window around the predicted shift ...
     search_speed_m_s: float = 1.5  # ... widened to this speed times the time since the last match
     max_coast_s: float = 1.0  # frames without a trusted pose for longer than this: restart (reset)
+    map_keyframes: int = 16  # keys kept for re-use (onboard/keymap.py); 0: every new key is new
+    reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
+    reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
+    reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
     depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
@@ -212,12 +218,21 @@ class _Match:
 
 @dataclass
 class _Prev:
-    """The last trusted frame, kept to seed a new key when a match fails."""
+    """The last trusted frame, kept to seed a new key: its position as an
+    offset from the key it was matched against (`base`, None after a
+    restart: then the offset is the position), so a refined key position
+    carries over."""
 
     t_s: float
     cloud: Cloud
-    p_W_m: np.ndarray
     R_W_C: np.ndarray
+    base: "_Key | None"
+    d_W_m: np.ndarray
+    var_W_m2: np.ndarray  # (3,) of the offset
+
+    @property
+    def p_W_m(self) -> np.ndarray:
+        return self.d_W_m if self.base is None else self.base.p_W_m + self.d_W_m
 
 
 @dataclass
@@ -258,6 +273,7 @@ class NislamTracker:
         self.p = params
         self.shape = (params.grid_height, params.grid_width)
         self._key: _Key | None = None
+        self._map: KeyframeMap[_Key] = KeyframeMap(params.map_keyframes)
         self._prev: _Prev | None = None
         self._next_key_id = 0
         self._reset_counter = 0
@@ -293,6 +309,13 @@ class NislamTracker:
         key = self._key
         finished: list[KeyframeCloud] = []
         outcome = self._match(key, cloud, frame.t_s, r_cur, attitude, t_att)
+        reused = False
+        if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
+            found = self._reuse(key, outcome, cloud, frame.t_s, r_cur, attitude, t_att)
+            if found is not None:
+                finished.append(self._key_cloud(key))
+                key, outcome = found
+                reused = True
         if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
             # The current frame no longer matches the key: make the last trusted
             # frame the key (it matched, so it overlaps both) and try again.
@@ -304,7 +327,8 @@ class NislamTracker:
             return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
 
         peak = outcome.peak
-        self._prev = _Prev(frame.t_s, cloud, outcome.p_W_m, r_cur)
+        self._prev = _Prev(frame.t_s, cloud, r_cur, key, outcome.p_W_m - key.p_W_m,
+                           outcome.pose_var[:3])
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
         if new_key:
@@ -331,6 +355,7 @@ class NislamTracker:
             attitude_offset_s=self._calib.offset_s,
             matched_cells=outcome.depth.matched,
             finished_keyframes=tuple(finished),
+            keyframe_reused=reused,
         )
 
     def _coasted_too_long(self, t_s: float) -> bool:
@@ -387,6 +412,40 @@ class NislamTracker:
         p_W = key.p_W_m + key.R_W_C @ t_inc
         pose_var = self._pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
         return _Match(p_W, peak, depth, theta_img, pose_var)
+
+    def _reuse(
+        self, key: _Key, outcome: _Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
+        attitude: AttitudeSource, t_att: float,
+    ) -> tuple[_Key, _Match] | None:
+        """The match against the current key weakened (PSR < T_r) or failed:
+        try the kept keys that look the same way from about the same place,
+        and make the best one that matches at least as firmly as a fresh key
+        would (PSR >= T_r) the current key again. A frame matched against both
+        keys measures their offset: the key positions are refined from all
+        offsets measured so far (onboard.keymap)."""
+        p_guess = outcome.p_W_m if outcome is not None else self._prev.p_W_m  # type: ignore[union-attr]
+        best: tuple[_Key, _Match] | None = None
+        for cand in self._map.candidates(
+            r_cur, p_guess, key.keyframe_id, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
+            self.p.reuse_candidates,
+        ):
+            cand.shifts = []  # no motion prior against a key not matched for a while: search it all
+            o = self._match(cand, cloud, t_s, r_cur, attitude, t_att)
+            if o is not None and o.peak.psr >= self.p.psr_keyframe:
+                if best is None or o.peak.psr > best[1].peak.psr:
+                    best = (cand, o)
+        if best is None:
+            return None
+        cand, o = best
+        d_cand = o.p_W_m - cand.p_W_m
+        if outcome is not None:
+            d_key = outcome.p_W_m - key.p_W_m
+            self._map.add_offset(key.keyframe_id, cand.keyframe_id, d_key - d_cand,
+                                 outcome.pose_var[:3] + o.pose_var[:3])
+            self._map.solve()
+        self._key = cand
+        self._map.use(cand)
+        return cand, dataclasses.replace(o, p_W_m=cand.p_W_m + d_cand)
 
     def _depth_translation(
         self, key: _Key, img: AxonometricImage, du: int, dv: int
@@ -484,7 +543,7 @@ class NislamTracker:
         if self._key is not None:
             self._reset_counter += 1
         self._lost = False
-        self._prev = _Prev(t_s, cloud, p_W, r_cur)
+        self._prev = _Prev(t_s, cloud, r_cur, None, p_W, np.zeros(3))
         finished = self._new_key_from(self._prev)
         self._last_trusted_p = p_W
         return TrackResult(
@@ -525,7 +584,7 @@ class NislamTracker:
         self._key = _Key(
             keyframe_id=self._next_key_id,
             t_s=prev.t_s,
-            p_W_m=prev.p_W_m.copy(),
+            p_W_m=np.array(prev.p_W_m, dtype=np.float64),
             R_W_C=prev.R_W_C.copy(),
             img=img,
             gray_ref=img.gray.copy(),
@@ -536,12 +595,19 @@ class NislamTracker:
             layers=layers,
         )
         self._next_key_id += 1
+        if self.p.map_keyframes > 0:
+            self._map.use(self._key)
+            if prev.base is not None:  # the new key's offset from the key its frame matched
+                self._map.add_offset(prev.base.keyframe_id, self._key.keyframe_id, prev.d_W_m,
+                                     prev.var_W_m2)
         return finished
 
     def _key_cloud(self, key: _Key) -> KeyframeCloud:
+        """The key as it is now: copies, since a kept key may be refined and
+        moved after the map consumer got it (same id: the newer one wins)."""
         return KeyframeCloud(
-            key.keyframe_id, key.t_s, key.p_W_m, key.R_W_C, key.img.res_m,
-            np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref, key.img.bgr,
+            key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C, key.img.res_m,
+            np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr,
         )
 
     # -------------------------------------------------------------- results

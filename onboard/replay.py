@@ -58,7 +58,8 @@ class TrackLog:
     keyframes: int = 0
     resets: int = 0
     attitude_offset_s: float | None = None
-    clouds: list[KeyframeCloud] = field(default_factory=list)
+    keyframes_reused: int = 0
+    clouds: dict[int, KeyframeCloud] = field(default_factory=dict)  # by id: a kept key's newest
 
     @property
     def frames(self) -> int:
@@ -100,7 +101,8 @@ class ReplayResult:
             f"frames      {m['frames']}  (skipped inputs: {_skipped_text(m['skipped'])})",
             f"tracked     {m['frames_tracked']} ({100.0 * m['tracked_share']:.1f} %), "
             f"lost {m['frames_lost']}{_reasons_text(m['lost_reasons'])}",
-            f"key frames  {m['keyframes']}, resets {m['resets']}",
+            f"key frames  {m['keyframes']} new, {m['keyframes_reused']} re-used; "
+            f"resets {m['resets']}",
         ]
         if m["ate_rmse_m"] is None:
             lines.append(f"ATE / RPE   not computed: {m['evaluation_note']}")
@@ -154,7 +156,7 @@ def replay(
     paths = {name: out_dir / name for name in RESULT_FILES}
     write_trajectories(ev, out_dir)
     plot_note = _write_plot(ev, paths[PLOT_FILE], f"{seq.path.name}, {tracker.name}")
-    map_points = _write_map(track_log.clouds, paths[MAP_FILE])
+    map_points = _write_map(list(track_log.clouds.values()), paths[MAP_FILE])
     write_text_atomic(paths[CONFIG_FILE], config_to_toml(cfg))
     metrics = build_metrics(
         seq, cfg, track_log, ev, attitude_label, map_points, plot_written=plot_note is None
@@ -189,12 +191,14 @@ def track_sequence(
             else:
                 out.lost_reasons[result.lost_reason or "unknown"] += 1
             out.keyframes += int(result.new_keyframe)
+            out.keyframes_reused += int(result.keyframe_reused)
             out.resets = result.reset_counter
             out.attitude_offset_s = result.attitude_offset_s
-            out.clouds.extend(result.finished_keyframes)
+            for cloud in result.finished_keyframes:
+                out.clouds[cloud.keyframe_id] = cloud
     last = tracker.finish()
     if last is not None:
-        out.clouds.append(last)
+        out.clouds[last.keyframe_id] = last
     return out
 
 
@@ -249,6 +253,7 @@ def build_metrics(
         "tracked_share": tracked / frames if frames else 0.0,
         "lost_reasons": dict(track_log.lost_reasons),
         "keyframes": track_log.keyframes,
+        "keyframes_reused": track_log.keyframes_reused,
         "resets": track_log.resets,
         **accuracy,
         "frames_without_groundtruth": ev.frames_without_groundtruth,

@@ -20,9 +20,12 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         frames_tracked, frames_lost, keyframes, resets), the
                         map held (map_keyframes, map_points, map_bytes),
                         dropped_poses, dropped_keyframes, errors, uptime_s.
-    map/keyframe/<id>   each finished key frame once, binary: the encoding of
+    map/keyframe/<id>   each finished key frame, binary: the encoding of
                         onboard/mapcodec.py (encoding
                         "application/octet-stream;nislam-keyframe/1").
+                        A key the tracker re-uses is published again when
+                        it is left (refined, possibly moved): the newest
+                        under an id replaces the older one.
     map/**              a queryable: a `get` on it (or on any key below it)
                         is answered with every key frame held, each as one
                         reply under its own map/keyframe/<id> key. Late

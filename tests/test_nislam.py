@@ -381,3 +381,36 @@ def test_unrelated_scene_is_not_trusted(scene):
     other_bgr, other_depth = Scene(seed=99).render(np.eye(3), np.zeros(3))
     res = tracker.track(RgbdFrame(DT, other_bgr, other_depth), att)
     assert not res.trusted and res.p_W_m is None and res.lost_reason
+
+
+# ------------------------------------------------------------------ key re-use
+def _pan_out_and_back(step_deg: float = 3.0, n: int = 10):
+    """Pan 0 -> 30 deg and back to 0 while drifting 2 mm/frame sideways."""
+    angles = [step_deg * k for k in range(n + 1)] + [step_deg * k for k in range(n - 1, -1, -1)]
+    return [(_rot(y=a), np.array([0.002 * i, 0.0, 0.0])) for i, a in enumerate(angles)]
+
+
+@pytest.mark.parametrize("map_keyframes", [16, 0])
+def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
+    """psr_keyframe 150 makes the pan out start key 1 near 12 deg. Back at
+    0 deg the match against key 1 weakens below T_r again: with kept keys the
+    tracker re-uses key 0 (same view, PSR ~670) instead of starting key 2,
+    and the position is measured against key 0 again (no error carried over
+    from key 1). Measured: key 0 re-used, error < 0.3 mm; without kept keys,
+    key 2 starts there."""
+    poses = _pan_out_and_back()
+    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, map_keyframes=map_keyframes))
+    results = _track_poses(tracker, scene, poses)
+    assert all(r.trusted for r in results)
+    assert sum(r.new_keyframe for r in results) == (2 if map_keyframes else 3)
+    last = results[-1]
+    if map_keyframes:
+        assert last.keyframe_reused and not last.new_keyframe and last.keyframe_id == 0
+        assert last.psr > 150.0
+        # key 1's cloud is handed out when the tracker leaves it
+        assert [k.keyframe_id for k in last.finished_keyframes] == [1]
+    else:
+        assert not any(r.keyframe_reused for r in results)
+        assert last.new_keyframe and last.keyframe_id == 2
+    for e in _errors_mm(results, poses):
+        assert np.max(np.abs(e)) < POS_TOL_M * 1000
