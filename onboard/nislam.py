@@ -17,8 +17,9 @@ Per frame (ref. "Per-frame order"):
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import logging
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -37,6 +38,8 @@ from onboard.frames import (
 from onboard.geometry import so3_log
 from onboard.keymap import KeyframeMap
 from onboard.projection import AxonometricImage, Cloud, adaptive_resolution, make_cloud, project
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,7 @@ class NislamParams:
     reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
     reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
     reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
+    reuse_reset_jump_m: float = 0.05  # a re-use moving the position more than this bumps reset_counter
     depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
@@ -311,11 +315,13 @@ class NislamTracker:
         outcome = self._match(key, cloud, frame.t_s, r_cur, attitude, t_att)
         reused = False
         if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
+            p_before = outcome.p_W_m if outcome is not None else self._last_trusted_p
             found = self._reuse(key, outcome, cloud, frame.t_s, r_cur, attitude, t_att)
             if found is not None:
                 finished.append(self._key_cloud(key))
                 key, outcome = found
                 reused = True
+                self._count_jump(p_before, outcome.p_W_m)
         if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
             # The current frame no longer matches the key: make the last trusted
             # frame the key (it matched, so it overlaps both) and try again.
@@ -357,6 +363,19 @@ class NislamTracker:
             finished_keyframes=tuple(finished),
             keyframe_reused=reused,
         )
+
+    def _count_jump(self, p_before_m: np.ndarray | None, p_after_m: np.ndarray) -> None:
+        """A re-used key (and the refined key positions) can move the
+        position by more than the flight controller should take as motion,
+        e.g. back onto the old keys after a restart: such a jump bumps the
+        reset counter so the estimator re-anchors instead of rejecting it."""
+        if p_before_m is None:
+            return
+        jump_m = float(np.linalg.norm(p_after_m - p_before_m))
+        if jump_m > self.p.reuse_reset_jump_m:
+            self._reset_counter += 1
+            log.info("key re-use moved the position by %.3f m: reset %d", jump_m,
+                     self._reset_counter)
 
     def _coasted_too_long(self, t_s: float) -> bool:
         """No trusted pose for longer than `max_coast_s`: the key is not

@@ -409,8 +409,20 @@ def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
         assert last.psr > 150.0
         # key 1's cloud is handed out when the tracker leaves it
         assert [k.keyframe_id for k in last.finished_keyframes] == [1]
+        assert last.reset_counter == 0  # the re-use moved the position < 1 mm: no jump
     else:
         assert not any(r.keyframe_reused for r in results)
         assert last.new_keyframe and last.keyframe_id == 2
     for e in _errors_mm(results, poses):
         assert np.max(np.abs(e)) < POS_TOL_M * 1000
+
+
+def test_key_reuse_that_jumps_bumps_the_reset_counter(scene):
+    """The same pan with reuse_reset_jump_m = 0: the re-use moves the
+    position by a fraction of a millimetre, which now counts as a jump: one
+    reset, on the re-use frame only."""
+    poses = _pan_out_and_back()
+    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, reuse_reset_jump_m=0.0))
+    results = _track_poses(tracker, scene, poses)
+    assert [r.reset_counter for r in results] == [0] * (len(results) - 1) + [1]
+    assert results[-1].keyframe_reused
