@@ -89,7 +89,7 @@ def test_float64_depth_and_a_real_tracker_key_frame_round_trip(shared_data: Path
     tracker = make_tracker("nislam", seq.intrinsics, Config())
     log = track_sequence(tracker, seq, attitude, None, progress=False)
     assert log.clouds
-    for cloud in log.clouds:
+    for cloud in log.clouds.values():
         xyz, rgb = cloud.points()
         gxyz, grgb = decode_keyframe(encode_keyframe(cloud)).points()
         assert same_bits(gxyz, xyz) and same_bits(grgb, rgb)
