@@ -73,7 +73,7 @@ class NislamParams:
     reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
     reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
     reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
-    reuse_reset_jump_m: float = 0.05  # a re-use moving the position more than this bumps reset_counter
+    reuse_reset_jump_m: float = 0.05  # a re-use moving the position this much beyond what it may have flown: reset
     depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
@@ -315,13 +315,12 @@ class NislamTracker:
         outcome = self._match(key, cloud, frame.t_s, r_cur, attitude, t_att)
         reused = False
         if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
-            p_before = outcome.p_W_m if outcome is not None else self._last_trusted_p
             found = self._reuse(key, outcome, cloud, frame.t_s, r_cur, attitude, t_att)
             if found is not None:
                 finished.append(self._key_cloud(key))
                 key, outcome = found
                 reused = True
-                self._count_jump(p_before, outcome.p_W_m)
+                self._count_jump(outcome.p_W_m, frame.t_s)
         if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
             # The current frame no longer matches the key: make the last trusted
             # frame the key (it matched, so it overlaps both) and try again.
@@ -364,15 +363,20 @@ class NislamTracker:
             keyframe_reused=reused,
         )
 
-    def _count_jump(self, p_before_m: np.ndarray | None, p_after_m: np.ndarray) -> None:
+    def _count_jump(self, p_W_m: np.ndarray, t_s: float) -> None:
         """A re-used key (and the refined key positions) can move the
         position by more than the flight controller should take as motion,
         e.g. back onto the old keys after a restart: such a jump bumps the
-        reset counter so the estimator re-anchors instead of rejecting it."""
-        if p_before_m is None:
+        reset counter so the estimator re-anchors instead of rejecting it.
+        The jump is measured from the last position reported, less the
+        distance the camera may have flown since (`search_speed_m_s`), not
+        from the weakened match against the old key: that match is often a
+        wrong peak and is never reported."""
+        if self._last_trusted_p is None or self._prev is None:
             return
-        jump_m = float(np.linalg.norm(p_after_m - p_before_m))
-        if jump_m > self.p.reuse_reset_jump_m:
+        jump_m = float(np.linalg.norm(p_W_m - self._last_trusted_p))
+        flown_m = self.p.search_speed_m_s * max(t_s - self._prev.t_s, 0.0)
+        if jump_m - flown_m > self.p.reuse_reset_jump_m:
             self._reset_counter += 1
             log.info("key re-use moved the position by %.3f m: reset %d", jump_m,
                      self._reset_counter)

@@ -418,11 +418,14 @@ def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
 
 
 def test_key_reuse_that_jumps_bumps_the_reset_counter(scene):
-    """The same pan with reuse_reset_jump_m = 0: the re-use moves the
-    position by a fraction of a millimetre, which now counts as a jump: one
+    """The same pan with reuse_reset_jump_m = 0 and no allowance for the
+    distance flown between frames (search_speed_m_s = 0): the re-use frame's
+    2 mm step from the last reported position now counts as a jump: one
     reset, on the re-use frame only."""
     poses = _pan_out_and_back()
-    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, reuse_reset_jump_m=0.0))
+    tracker = NislamTracker(
+        INTR, _params(psr_keyframe=150.0, reuse_reset_jump_m=0.0, search_speed_m_s=0.0)
+    )
     results = _track_poses(tracker, scene, poses)
     assert [r.reset_counter for r in results] == [0] * (len(results) - 1) + [1]
     assert results[-1].keyframe_reused
