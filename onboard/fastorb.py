@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from onboard import fastorb_kernels
 from onboard.fastorb_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
 from onboard.fastorb_match import (
     LkSettings,
@@ -105,7 +106,7 @@ class FastOrbParams:
     pnp_iterations: int = 100
     pnp_confidence: float = 0.99
     pnp_huber_px: float = 1.0  # Huber-weighted Gauss-Newton [px]; 0 with rgbd_bf_px 0: LM
-    rgbd_bf_px: float = 40.0  # disparity residual bf / z (ORB-SLAM2 TUM: 40); 0: pixels only
+    rgbd_bf_px: float = 120.0  # disparity residual bf / z (ORB-SLAM2 TUM: 40); 0: pixels only
     rgbd_max_depth_m: float = 3.0  # ... for points closer than this (ORB-SLAM2: 40 b = 3.1 m)
     pnp_sigma_gate: float = 3.0  # final inliers within this many robust sigmas ...
     pnp_min_gate_px: float = 1.5  # ... but at least this far
@@ -120,7 +121,7 @@ class FastOrbParams:
     min_point_distance_px: float = 8.0  # new keypoints keep this far from followed ones
     # Descriptor-free local-map tracking
     map_track_every: int = 2  # every n-th frame
-    map_track_keyframes: int = 2  # from the n key frames nearest in view (one LK call each)
+    map_track_keyframes: int = 1  # from the n key frames nearest in view (one LK call each)
     map_track_max: int = 400  # landmarks per frame at most
     map_track_radius_px: float = 10.0  # LK may move a landmark this far from its projection
     # When tracking thins out
@@ -129,7 +130,7 @@ class FastOrbParams:
     min_inliers: int = 30  # fewer: no pose
     # Key frames (Sec. III)
     keyframe_max_frames: int = 20  # a key frame at least this often ...
-    keyframe_inlier_ratio: float = 0.75  # ... or when inliers fall below this share of the last key's
+    keyframe_inlier_ratio: float = 0.65  # ... or when inliers fall below this share of the last key's
     keyframe_min_inliers: int = 100  # never from a frame with fewer inliers
     local_map_keyframes: int = 5  # key frames nearest in view forming the local map
     max_keyframes: int = 50  # kept for the local map and re-localisation
@@ -170,6 +171,14 @@ class _Tracked:
 
     def subset(self, sel: np.ndarray) -> "_Tracked":
         return _Tracked(self.uv[sel], self.xyz_W[sel], self.ids[sel])
+
+    @classmethod
+    def joined(cls, parts: list["_Tracked"]) -> "_Tracked":
+        if not parts:
+            return cls.empty()
+        return cls(np.concatenate([p.uv for p in parts]).astype(np.float32, copy=False),
+                   np.concatenate([p.xyz_W for p in parts]),
+                   np.concatenate([p.ids for p in parts]))
 
     def extended(self, other: "_Tracked") -> "_Tracked":
         return _Tracked(
@@ -235,6 +244,7 @@ class FastOrbTracker:
         self._coasted = 0
         self._reloc_cursor = 0
         self._reset_counter = 0
+        fastorb_kernels.warm_up()  # compile (or load) before the first frame, not during it
 
     # ------------------------------------------------------------------ API
     def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
@@ -402,21 +412,22 @@ class FastOrbTracker:
         back are re-acquired with their old position, which holds drift back."""
         self._frames_since_map = 0
         mp = self._map.points_near(prior)
-        mp = mp.subset(~np.isin(mp.ids, moved.ids) & (mp.kf < self.p.map_track_keyframes))
-        uv, z = project(self.K, prior, mp.xyz_W)
+        rows = np.flatnonzero((mp.kf < self.p.map_track_keyframes) & ~mp.has(moved.ids))
+        uv, z = project(self.K, prior, mp.xyz_W[rows])
         w, h = self._size
         m = 8  # keep the LK window and its pyramid footprint inside the image
         view = ((z > self.p.min_depth_m) & (uv[:, 0] >= m) & (uv[:, 0] < w - m)
                 & (uv[:, 1] >= m) & (uv[:, 1] < h - m))
         sel = np.flatnonzero(view)
         sel = sel[self._free(moved.uv, uv[sel])][: self.p.map_track_max]
-        found = _Tracked.empty()
-        for slot in np.unique(mp.kf[sel]):
-            g = sel[mp.kf[sel] == slot]
-            at, ok = track_lk(mp.keyframes[slot].gray, gray, mp.uv[g], uv[g], self._lk)
+        kf = mp.kf[rows[sel]]
+        parts = []
+        for slot in np.unique(kf):
+            g = sel[kf == slot]
+            at, ok = track_lk(mp.keyframes[slot].gray, gray, mp.uv[rows[g]], uv[g], self._lk)
             ok &= np.sum((at - uv[g]) ** 2, axis=1) <= self.p.map_track_radius_px**2
-            found = found.extended(_Tracked(at[ok], mp.xyz_W[g[ok]], mp.ids[g[ok]]))
-        return found
+            parts.append(_Tracked(at[ok], mp.xyz_W[rows[g[ok]]], mp.ids[rows[g[ok]]]))
+        return _Tracked.joined(parts)
 
     def _match_map(self, feats: _Features, guess: np.ndarray) -> _Tracked:
         """Keypoints matched to local-map landmarks by projection and descriptor."""

@@ -8,14 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.fastorb_kernels import depth_at
 from onboard.fastorb_motion import camera_in_world
 from onboard.frames import KeyframeCloud
-
-
-# The 4 x 4 pixels around a sub-pixel position, row by row: (row, column) offsets
-# from the pixel at its floor.
-_WIN_DV = np.repeat(np.arange(-1, 3), 4)
-_WIN_DU = np.tile(np.arange(-1, 3), 4)
 
 
 def sample_depth(
@@ -30,17 +25,9 @@ def sample_depth(
     is off by up to half a pixel's worth of slope); 0 where unusable: out of
     range, or on a depth edge (the 4 x 4 pixels around it span more than
     `edge_rel` of the depth), where a corner's depth belongs to either surface."""
-    h, w = depth_m.shape
-    x = np.clip(uv[:, 0], 1.0, w - 3.0)
-    y = np.clip(uv[:, 1], 1.0, h - 3.0)
-    u0, v0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - u0, y - v0
-    win = depth_m[v0[:, None] + _WIN_DV, u0[:, None] + _WIN_DU].astype(np.float64)  # (N, 16)
-    z00, z01, z10, z11 = win[:, 5], win[:, 6], win[:, 9], win[:, 10]
-    z = (z00 * (1 - fx) + z01 * fx) * (1 - fy) + (z10 * (1 - fx) + z11 * fx) * fy
-    lo, hi = win.min(axis=1), win.max(axis=1)
-    ok = (z > min_depth_m) & (z < max_depth_m) & (lo > 0) & (hi - lo <= edge_rel * z)
-    return np.where(ok, z, 0.0)
+    if len(uv) == 0:
+        return np.zeros(0)
+    return depth_at(depth_m, uv, min_depth_m, max_depth_m, edge_rel)  # compiled
 
 
 @dataclass
@@ -69,8 +56,9 @@ class Keyframe:
 
 @dataclass(frozen=True)
 class MapPoints:
-    """Landmarks of some key frames, one row per landmark id, each with its
-    descriptor and pixel in the key frame `kf` (an index into `keyframes`)."""
+    """Landmarks of some key frames, one row per landmark id (ascending),
+    each with its descriptor and pixel in the key frame `kf` (an index into
+    `keyframes`)."""
 
     keyframes: tuple[Keyframe, ...]
     ids: np.ndarray  # (M,) int64
@@ -91,6 +79,15 @@ class MapPoints:
     def __len__(self) -> int:
         return len(self.ids)
 
+    def has(self, ids: np.ndarray) -> np.ndarray:
+        """Which rows (bool (M,)) have one of `ids` (np.isin by binary search:
+        the rows are sorted by id)."""
+        hit = np.zeros(len(self.ids), bool)
+        if len(self.ids) and len(ids):
+            pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+            hit[pos[self.ids[pos] == ids]] = True
+        return hit
+
 
 class LocalMap:
     """The key frames kept for re-localisation (newest last). The local map
@@ -104,6 +101,7 @@ class LocalMap:
         self._local = local
         self._cos_max = float(np.cos(np.radians(max_view_angle_deg)))
         self._cached: tuple[tuple[int, ...], MapPoints] = ((), MapPoints.empty())
+        self._views: tuple[np.ndarray, np.ndarray] | None = None  # (axes, centres) of _kfs
 
     def __len__(self) -> int:
         return len(self._kfs)
@@ -114,10 +112,12 @@ class LocalMap:
 
     def add(self, kf: Keyframe) -> None:
         self._kfs.append(kf)
+        self._views = None
 
     def clear(self) -> None:
         self._kfs.clear()
         self._cached = ((), MapPoints.empty())
+        self._views = None
 
     def newest_first(self, n: int) -> list[Keyframe]:
         return list(self._kfs)[::-1][:n]
@@ -130,8 +130,12 @@ class LocalMap:
             return []
         axis = T_cw[2, :3]  # optical axis in the world: row 3 of R_cw
         centre = camera_in_world(T_cw)[0]
-        cosines = np.array([k.axis_W for k in self._kfs]) @ axis
-        dists = np.linalg.norm(np.array([k.centre_W for k in self._kfs]) - centre, axis=1)
+        if self._views is None:  # rebuilt only when the key frames change
+            self._views = (np.array([k.axis_W for k in self._kfs]),
+                           np.array([k.centre_W for k in self._kfs]))
+        axes, centres = self._views
+        cosines = axes @ axis
+        dists = np.linalg.norm(centres - centre, axis=1)
         score = np.arccos(np.clip(cosines, -1.0, 1.0)) + dists
         order = [i for i in np.argsort(score) if cosines[i] >= self._cos_max][:n]
         kfs = list(self._kfs)

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-# Neighbourhood of a grid cell: the 3 x 3 block around it (GMS, Eq. 4 there).
-_NEIGHBOURS = tuple((dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
-# GMS's four grid placements: the left grid moved by half a cell in x, y, both.
-_GRID_SHIFTS = ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5))
+from onboard.fastorb_kernels import gms_keep, one_to_one, radius_pairs
+
+# GMS's four grid placements: the left grid moved by no or half a cell in x
+# and in y, independently.
+_HALF_SHIFTS = (0.0, 0.5)
 
 
 @dataclass(frozen=True)
@@ -106,42 +106,22 @@ def gms_inliers(
     smooth flow split by a cell border keeps both halves.
     """
     n = len(p0)
-    keep = np.zeros(n, bool)
     if n == 0:
-        return keep
+        return np.zeros(0, bool)
     w, h = size_wh
     cols, rows = grid_cr
     cw, ch = w / cols, h / rows
     # Cell indices are offset by one: a zero border around both grids lets the
-    # neighbour look-ups run without bounds checks.
+    # neighbour look-ups run without bounds checks. Left cells without and
+    # with the half-cell shift; the counting is compiled (fastorb_kernels).
     bx = np.clip((p1[:, 0] / cw).astype(np.int64), 0, cols - 1) + 1
     by = np.clip((p1[:, 1] / ch).astype(np.int64), 0, rows - 1) + 1
-    right = (rows + 2, cols + 2)
-    n_right = right[0] * right[1]
-    right_cell = by * right[1] + bx
-    for sx, sy in _GRID_SHIFTS:
-        lc, lr = cols + (sx > 0), rows + (sy > 0)
-        ax = np.clip(((p0[:, 0] + sx * cw) / cw).astype(np.int64), 0, lc - 1) + 1
-        ay = np.clip(((p0[:, 1] + sy * ch) / ch).astype(np.int64), 0, lr - 1) + 1
-        width = lc + 2
-        n_left = (lr + 2) * width
-        cell = ay * width + ax
-        pair = cell * n_right + right_cell
-        pairs = np.bincount(pair, minlength=n_left * n_right)
-        per_cell = np.bincount(cell, minlength=n_left)
-        has_cell = np.zeros((lr + 2, width), np.int64)
-        has_cell[1:-1, 1:-1] = 1
-        has_cell = has_cell.ravel()
-        support = np.zeros(n, np.int64)
-        total = np.zeros(n, np.int64)
-        cells = np.zeros(n, np.int64)
-        for dx, dy in _NEIGHBOURS:  # flat offsets: the same step in both grids
-            d_left = dy * width + dx
-            support += pairs[pair + d_left * n_right + dy * right[1] + dx]
-            total += per_cell[cell + d_left]
-            cells += has_cell[cell + d_left]
-        keep |= support > alpha * np.sqrt(total / np.maximum(cells, 1))
-    return keep
+    left_x = np.stack([np.clip(((p0[:, 0] + s * cw) / cw).astype(np.int64), 0, cols - 1 + k) + 1
+                       for k, s in enumerate(_HALF_SHIFTS)])
+    left_y = np.stack([np.clip(((p0[:, 1] + s * ch) / ch).astype(np.int64), 0, rows - 1 + k) + 1
+                       for k, s in enumerate(_HALF_SHIFTS)])
+    return gms_keep(left_x, left_y, by * (cols + 2) + bx, cols, rows, (rows + 2) * (cols + 2),
+                    alpha)
 
 
 def epipolar_inliers(
@@ -174,29 +154,24 @@ def match_by_projection(
     frame's keypoints by descriptor, among the keypoints within `radius_px` of
     the projection (ORB-SLAM's search by projection). Only pairs inside the
     radius are compared, so the cost follows the number of nearby pairs, not
-    keypoints x map points. Returns index arrays (kp, map), one-to-one, best
-    Hamming distance first."""
+    keypoints x map points (fastorb_kernels.radius_pairs bins the keypoints
+    in cells of the radius). Returns index arrays (kp, map), one-to-one, best
+    Hamming distance first; equal distances: map points, then keypoints, in
+    index order."""
     if len(desc) == 0 or len(map_desc) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    pairs = cKDTree(kp_uv).sparse_distance_matrix(
-        cKDTree(map_uv), radius_px, output_type="ndarray"
-    )
-    q, t = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    d = _hamming_pairs(desc, map_desc, q, t)
-    ok = d <= max_hamming
-    # 16-bit distances: numpy's stable sort is a radix sort on them
-    return _unique_pairs(q[ok], t[ok], d[ok].astype(np.uint16))
+    kp_uv = np.ascontiguousarray(kp_uv, np.float64)
+    map_uv = np.ascontiguousarray(map_uv, np.float64)
+    size = np.maximum(kp_uv.max(axis=0), map_uv.max(axis=0)) + 1.0  # the grid's extent
+    q, t, d = radius_pairs(kp_uv, map_uv, float(radius_px), _words(desc), _words(map_desc),
+                           int(max_hamming), float(size[0]), float(size[1]))
+    best = one_to_one(q, t, d, len(kp_uv), len(map_uv))  # as _unique_pairs does
+    return q[best], t[best]
 
 
-def _hamming_pairs(a: np.ndarray, b: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """Hamming distances between rows a[i] and b[j] of (N, 32) uint8
-    descriptors, one 64-bit word at a time (no (P, 32) copies)."""
-    a64 = np.ascontiguousarray(a).view(np.uint64)
-    b64 = np.ascontiguousarray(b).view(np.uint64)
-    d = np.zeros(len(i), np.int64)
-    for k in range(a64.shape[1]):
-        d += np.bitwise_count(a64[:, k][i] ^ b64[:, k][j])
-    return d
+def _words(desc: np.ndarray) -> np.ndarray:
+    """(N, 32) uint8 descriptors as (N, 4) uint64 words."""
+    return np.ascontiguousarray(desc).view(np.uint64)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

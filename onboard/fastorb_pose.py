@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from onboard.fastorb_kernels import pose_normal_equations, pose_residual_norms
 from onboard.fastorb_motion import pose_from_rvec, rvec_tvec, se3_exp
 
 
@@ -63,19 +64,18 @@ def solve_pnp(
     if found is None or found[1].sum() < min_inliers:
         return None
     T, inl = found
-    T = _refine(T, obj[inl], img[inl], disp[inl], K, s, s.refine_iterations)
+    T = _refine(T, obj, img, disp, inl, K, s, s.refine_iterations)
     # Inliers again under the refined pose (RANSAC's set came from a sample
     # fit), within `sigma_gate` robust standard deviations of the residuals:
     # with sub-pixel tracks a 2-3 px outlier would still pass the RANSAC
     # threshold and pull the pose along its weakest direction.
-    inl = _gated(_residuals(T, obj, img, disp, K, s.bf_px, jacobian=False)[0], inl, s)
+    inl = _gated(T, obj, img, disp, inl, K, s)
     if s.sigma_gate > 0 and inl.sum() >= min_inliers:
-        T = _refine(T, obj[inl], img[inl], disp[inl], K, s, 1)  # already close
-        inl = _gated(_residuals(T, obj, img, disp, K, s.bf_px, jacobian=False)[0], inl, s)
+        T = _refine(T, obj, img, disp, inl, K, s, 1)  # already close
+        inl = _gated(T, obj, img, disp, inl, K, s)
     if inl.sum() < min_inliers:
         return None
-    res, J = _residuals(T, obj[inl], img[inl], disp[inl], K, s.bf_px)  # the final inliers only
-    rms, cov = _covariance(res, J, s.huber_px)
+    rms, cov = _covariance(T, obj, img, disp, inl, K, s)  # the final inliers only
     return PnpResult(T, inl, rms, cov)
 
 
@@ -110,19 +110,25 @@ def _ransac(
 
 
 def _refine(
-    T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, K: np.ndarray,
-    s: PnpSettings, iterations: int,
+    T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, sel: np.ndarray,
+    K: np.ndarray, s: PnpSettings, iterations: int,
 ) -> np.ndarray:
+    """The pose refined on the points with `sel`."""
     if s.huber_px > 0 or s.bf_px > 0:
-        return refine_pose(T_cw, obj, img, K, s.huber_px, iterations, disp, s.bf_px)
+        return refine_pose(T_cw, obj, img, K, s.huber_px, iterations, disp, s.bf_px, sel)
     rvec, tvec = rvec_tvec(T_cw)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-10)
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec, criteria)
+    rvec, tvec = cv2.solvePnPRefineLM(obj[sel], img[sel], K, None, rvec, tvec, criteria)
     return pose_from_rvec(rvec, tvec)
 
 
-def _gated(res: np.ndarray, inl: np.ndarray, s: PnpSettings) -> np.ndarray:
-    err = np.sqrt(np.sum(res**2, axis=1))
+def _gated(
+    T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, inl: np.ndarray,
+    K: np.ndarray, s: PnpSettings,
+) -> np.ndarray:
+    """Points whose residual under T_cw is within the gate drawn from `inl`."""
+    err = pose_residual_norms(np.ascontiguousarray(T_cw[:3, :3]), T_cw[:3, 3].copy(), obj, img,
+                              disp, K[0, 0], K[1, 1], K[0, 2], K[1, 2], s.bf_px)
     return err <= _gate(err[inl], s)
 
 
@@ -141,27 +147,38 @@ def _gate(err_inliers: np.ndarray, s: PnpSettings) -> float:
 def refine_pose(
     T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, K: np.ndarray, huber_px: float,
     iterations: int, disp: np.ndarray | None = None, bf_px: float = 0.0,
+    sel: np.ndarray | None = None,
 ) -> np.ndarray:
     """Gauss-Newton on the reprojection error (plus the disparity residual
     where `disp` > 0) with Huber weights (a residual beyond `huber_px` counts
     linearly): points whose track has drifted by a pixel or two pull the pose
-    far less than in plain least squares."""
-    if disp is None:
-        disp = np.zeros(len(obj))
+    far less than in plain least squares. Only the points with `sel` (all
+    by default) count. The normal equations of `_residuals` come from one
+    compiled pass (fastorb_kernels.pose_normal_equations)."""
+    obj = np.ascontiguousarray(obj, np.float64)
+    img = np.ascontiguousarray(img, np.float64)
+    disp = np.zeros(len(obj)) if disp is None else np.ascontiguousarray(disp, np.float64)
+    sel = np.ones(len(obj), bool) if sel is None else sel
     T = T_cw
     for _ in range(iterations):
-        res, J = _residuals(T, obj, img, disp, K, bf_px)
-        w = _huber_weights(res, huber_px)
-        Jf = J.reshape(-1, 6)
-        Jw = (J * w[:, None, None]).reshape(-1, 6)
+        H, g = _normal_equations(T, obj, img, disp, sel, K, bf_px, huber_px)[:2]
         try:
-            step = -np.linalg.solve(Jw.T @ Jf, Jw.T @ res.ravel())
+            step = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
         T = se3_exp(step) @ T
         if float(np.abs(step).max()) < 1e-5:  # 10 um / 10 urad: converged
             break
     return T
+
+
+def _normal_equations(
+    T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, sel: np.ndarray,
+    K: np.ndarray, bf_px: float, huber_px: float,
+) -> tuple:
+    return pose_normal_equations(np.ascontiguousarray(T_cw[:3, :3]), T_cw[:3, 3].copy(), obj,
+                                 img, disp, sel, K[0, 0], K[1, 1], K[0, 2], K[1, 2], bf_px,
+                                 huber_px)
 
 
 def _residuals(
@@ -206,29 +223,23 @@ def _residuals(
     return res, J
 
 
-def _huber_weights(res: np.ndarray, huber_px: float) -> np.ndarray:
-    r = np.sqrt(np.sum(res**2, axis=1))
-    if huber_px <= 0:
-        return np.ones(len(r))
-    return np.where(r <= huber_px, 1.0, huber_px / np.maximum(r, 1e-12))
-
-
-def _covariance(res: np.ndarray, J: np.ndarray, huber_px: float) -> tuple[float, np.ndarray]:
-    """Reprojection RMS and sigma^2 (J^T W J)^-1 of the left perturbation
-    (phi, rho), sigma^2 the weighted residual variance with 6 degrees of
-    freedom taken out (floored at (0.1 px)^2, quantisation noise). `res` (N, 3)
-    and `J` (N, 3, 6) as `_residuals` returns them; a zero third residual
-    row (no depth) counts no degree of freedom."""
-    n_obs = 2 * len(res) + int(np.count_nonzero(J[:, 2, :].any(axis=1)))
-    w = _huber_weights(res, huber_px)
-    sse = float(np.sum(w * np.sum(res**2, axis=1)))
-    sigma2 = max(sse / max(n_obs - 6, 1), 0.01)
-    Jf = J.reshape(-1, 6)
+def _covariance(
+    T_cw: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, sel: np.ndarray,
+    K: np.ndarray, s: PnpSettings,
+) -> tuple[float, np.ndarray]:
+    """Reprojection RMS over the points with `sel` and sigma^2 (J^T W J)^-1
+    of the left perturbation (phi, rho), sigma^2 the weighted residual
+    variance with 6 degrees of freedom taken out (floored at (0.1 px)^2,
+    quantisation noise); a point without a disparity residual adds 2
+    observations, one with it 3."""
+    H, _g, sse_w, sse_px, n_obs, n = _normal_equations(T_cw, obj, img, disp, sel, K, s.bf_px,
+                                                        s.huber_px)
+    sigma2 = max(sse_w / max(n_obs - 6, 1), 0.01)
     try:
-        cov = sigma2 * np.linalg.inv((J * w[:, None, None]).reshape(-1, 6).T @ Jf)
+        cov = sigma2 * np.linalg.inv(H)
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.nan)
-    return float(np.sqrt(np.mean(np.sum(res[:, :2] ** 2, axis=1)))), cov
+    return float(np.sqrt(sse_px / max(n, 1))), cov
 
 
 def world_pose_variance(T_cw: np.ndarray, cov: np.ndarray) -> np.ndarray:

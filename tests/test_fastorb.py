@@ -363,6 +363,55 @@ def test_gms_rejects_injected_outliers() -> None:
     assert gms_inliers(p0[:0], p1[:0], (640, 480), (16, 12), 6.0).shape == (0,)
 
 
+def _gms_numpy(p0, p1, size_wh, grid_cr, alpha) -> np.ndarray:
+    """The grid motion statistic as first written in numpy (bincounts and
+    nine flat-offset gathers per placement): the compiled one's reference."""
+    n = len(p0)
+    keep = np.zeros(n, bool)
+    (w, h), (cols, rows) = size_wh, grid_cr
+    cw, ch = w / cols, h / rows
+    bx = np.clip((p1[:, 0] / cw).astype(np.int64), 0, cols - 1) + 1
+    by = np.clip((p1[:, 1] / ch).astype(np.int64), 0, rows - 1) + 1
+    right = (rows + 2, cols + 2)
+    n_right = right[0] * right[1]
+    right_cell = by * right[1] + bx
+    for sx, sy in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+        lc, lr = cols + (sx > 0), rows + (sy > 0)
+        ax = np.clip(((p0[:, 0] + sx * cw) / cw).astype(np.int64), 0, lc - 1) + 1
+        ay = np.clip(((p0[:, 1] + sy * ch) / ch).astype(np.int64), 0, lr - 1) + 1
+        width = lc + 2
+        cell = ay * width + ax
+        pair = cell * n_right + right_cell
+        pairs = np.bincount(pair, minlength=(lr + 2) * width * n_right)
+        per_cell = np.bincount(cell, minlength=(lr + 2) * width)
+        has_cell = np.zeros((lr + 2, width), np.int64)
+        has_cell[1:-1, 1:-1] = 1
+        has_cell = has_cell.ravel()
+        support, total, cells = (np.zeros(n, np.int64) for _ in range(3))
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                d_left = dy * width + dx
+                support += pairs[pair + d_left * n_right + dy * right[1] + dx]
+                total += per_cell[cell + d_left]
+                cells += has_cell[cell + d_left]
+        keep |= support > alpha * np.sqrt(total / np.maximum(cells, 1))
+    return keep
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_gms_compiled_equals_numpy_reference(dtype) -> None:
+    """Same keep mask as the numpy form, points on cell borders and outside
+    the image included, in the tracker's float32 pixels too."""
+    rng = np.random.default_rng(11)
+    p0, p1 = _smooth_matches(rng, 900)
+    p1[rng.choice(900, 200, replace=False)] = rng.uniform([-20, -20], [660, 500], (200, 2))
+    p0[:40] = np.round(p0[:40] / 40.0) * 40.0  # exactly on cell borders (40 px cells)
+    p0, p1 = p0.astype(dtype), p1.astype(dtype)
+    for alpha in (2.0, 6.0):
+        np.testing.assert_array_equal(gms_inliers(p0, p1, (640, 480), (16, 12), alpha),
+                                      _gms_numpy(p0, p1, (640, 480), (16, 12), alpha))
+
+
 def test_epipolar_ransac_rejects_off_line_matches(flight_frames) -> None:
     """Real two-view geometry from the synthetic flight: matches moved off
     their epipolar line by 5 px are rejected, the true ones kept."""
@@ -394,6 +443,33 @@ def test_match_by_projection_gates_by_radius_and_distance() -> None:
     kp_i, map_i = match_by_projection(desc, uv, map_desc, map_uv, 15.0, 50)
     assert set(zip(kp_i.tolist(), map_i.tolist())) == {(i, i) for i in range(50) if i != 10}
     assert np.all(hamming(desc[kp_i], map_desc[map_i]) == 3)
+
+
+def test_match_by_projection_equals_brute_force() -> None:
+    """Every keypoint / projection pair within the radius is compared (the
+    compiled search bins keypoints by the radius): the same one-to-one
+    matches as comparing all pairs, nearest descriptor first."""
+    rng = np.random.default_rng(12)
+    desc = rng.integers(0, 256, (600, 32), dtype=np.uint8)
+    uv = rng.uniform(-5, 645, (600, 2))
+    src = rng.permutation(600)[:400]
+    map_desc = desc[src].copy()
+    map_desc[:, :4] ^= rng.integers(0, 256, (400, 4), dtype=np.uint8)  # about 16 bits apart
+    map_uv = uv[src] + rng.normal(0, 6.0, (400, 2))  # some beyond the radius
+    kp_i, map_i = match_by_projection(desc, uv, map_desc, map_uv, 15.0, 40)
+    d = np.array([[hamming(desc[i:i + 1], map_desc[j:j + 1])[0] for j in range(400)]
+                  for i in range(600)])
+    near = np.linalg.norm(uv[:, None] - map_uv[None], axis=2) <= 15.0
+    q, t = np.nonzero(near & (d <= 40))
+    order = np.lexsort((q, t, d[q, t]))  # by distance, then map point, then keypoint
+    used_q, used_t, want = set(), set(), []
+    for i, j in zip(q[order], t[order]):
+        if i not in used_q:
+            used_q.add(i)
+            want.append((i, j))
+    ref = [(i, j) for i, j in want if not (j in used_t or used_t.add(j))]
+    assert 200 < len(ref) < 400
+    assert list(zip(kp_i.tolist(), map_i.tolist())) == ref
 
 
 # ------------------------------------------------------------------ config and factory
@@ -466,6 +542,65 @@ def test_rgbd_residual_jacobian_matches_finite_differences() -> None:
         num = (_residuals(se3_exp(d) @ T, obj, img, disp, K, 40.0)[0]
                - _residuals(se3_exp(-d) @ T, obj, img, disp, K, 40.0)[0]) / (2 * h)
         np.testing.assert_allclose(J[:, :, k], num, rtol=1e-5, atol=1e-4)
+
+
+def test_compiled_normal_equations_match_the_residuals() -> None:
+    """The refinement's one-pass Gauss-Newton system (and the gates' residual
+    norms) equal those built from `_residuals` with Huber weights, points
+    without depth and unselected points included."""
+    from onboard.fastorb_kernels import pose_normal_equations, pose_residual_norms
+    from onboard.fastorb_pose import _residuals
+
+    rng = np.random.default_rng(13)
+    obj = np.column_stack([rng.uniform(-1, 1, 60), rng.uniform(-1, 1, 60), rng.uniform(1, 3, 60)])
+    img = rng.uniform(0, 600, (60, 2))
+    disp = np.where(np.arange(60) % 4 == 0, 0.0, rng.uniform(10, 40, 60))
+    sel = rng.uniform(size=60) < 0.7
+    T = se3_exp(_random_twist(rng, 0.1, 0.1))
+    for bf, huber in ((40.0, 1.0), (0.0, 1.0), (40.0, 0.0)):
+        res, J = _residuals(T, obj, img, disp, K, bf)
+        norm = np.linalg.norm(res, axis=1)
+        w = np.ones(60) if huber <= 0 else np.where(norm <= huber, 1.0, huber / norm)
+        w, r, Js = w[sel], res[sel], J[sel]
+        H, g, sse_w, sse_px, n_obs, n = pose_normal_equations(
+            T[:3, :3].copy(), T[:3, 3].copy(), obj, img, disp, sel, K[0, 0], K[1, 1], K[0, 2],
+            K[1, 2], bf, huber)
+        np.testing.assert_allclose(H, np.einsum("n,nki,nkj->ij", w, Js, Js), rtol=1e-12)
+        np.testing.assert_allclose(g, np.einsum("n,nki,nk->i", w, Js, r), rtol=1e-12)
+        np.testing.assert_allclose(sse_w, np.sum(w * np.sum(r**2, axis=1)), rtol=1e-12)
+        np.testing.assert_allclose(sse_px, np.sum(r[:, :2] ** 2), rtol=1e-12)
+        assert n == sel.sum() and n_obs == 2 * n + (bf > 0) * np.count_nonzero(disp[sel] > 0)
+        np.testing.assert_allclose(pose_residual_norms(T[:3, :3].copy(), T[:3, 3].copy(), obj, img,
+                                                       disp, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+                                                       bf), norm, rtol=1e-12)
+
+
+def test_sample_depth_equals_numpy_reference() -> None:
+    """The compiled depth look-up gives the numpy form's values bit for bit:
+    bilinear inside a surface, 0 on depth edges, holes and out of range."""
+    from onboard.fastorb_map import sample_depth
+
+    rng = np.random.default_rng(14)
+    depth = rng.uniform(0.5, 4.0, (48, 64)).astype(np.float32)
+    depth[10:20, 10:30] = 2.0  # flat patches pass the edge test
+    depth[30:40, 30:50] = np.linspace(1.0, 1.2, 20, dtype=np.float32)
+    depth[5:8, 40:44] = 0.0
+    uv = np.concatenate([rng.uniform(-3, 67, (300, 2)), rng.uniform([11, 11], [28, 18], (50, 2)),
+                         rng.uniform([31, 31], [48, 38], (50, 2))])
+    for pts in (uv, uv.astype(np.float32)):
+        h, w = depth.shape
+        x, y = np.clip(pts[:, 0], 1.0, w - 3.0), np.clip(pts[:, 1], 1.0, h - 3.0)
+        u0, v0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+        fx, fy = x - u0, y - v0
+        dv, du = np.repeat(np.arange(-1, 3), 4), np.tile(np.arange(-1, 3), 4)
+        win = depth[v0[:, None] + dv, u0[:, None] + du].astype(np.float64)
+        z = ((win[:, 5] * (1 - fx) + win[:, 6] * fx) * (1 - fy)
+             + (win[:, 9] * (1 - fx) + win[:, 10] * fx) * fy)
+        lo, hi = win.min(axis=1), win.max(axis=1)
+        ok = (z > 0.6) & (z < 3.5) & (lo > 0) & (hi - lo <= 0.05 * z)
+        got = sample_depth(depth, pts, 0.6, 3.5, 0.05)
+        np.testing.assert_array_equal(got, np.where(ok, z, 0.0))
+        assert np.count_nonzero(got) >= 80
 
 
 def test_rgbd_refinement_recovers_the_pose_from_a_perturbed_start() -> None:
