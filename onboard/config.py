@@ -200,6 +200,7 @@ class ServiceConfig:
     frame_timeout_s: float = 0.5  # no frame for this long: lost ("no frames")
     degraded_gap_s: float = 0.2  # a gap between frames longer than this: degraded
     start_grace_s: float = 10.0  # "starting" this long without a frame, then lost
+    recover_s: float = 1.0  # degraded or lost: back to tracking only after this long without problems
     poll_s: float = 0.05  # longest wait for a frame per loop turn (watchdog and stop latency)
     attitude_wait_s: float = 0.05  # longest wait for the AHRS to reach a frame's capture time
     stats_period_s: float = 5.0  # one statistics line (and systemd STATUS) this often
@@ -480,6 +481,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "service.frame_timeout_s": POSITIVE,
     "service.degraded_gap_s": POSITIVE,
     "service.start_grace_s": POSITIVE,
+    "service.recover_s": NON_NEGATIVE,
     "service.poll_s": Range(0.001, 1.0),
     "service.attitude_wait_s": Range(0.0, 1.0),
     "service.stats_period_s": POSITIVE,

@@ -10,6 +10,7 @@ right/down in the current image relative to the key.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.fft as sfft
@@ -36,12 +37,15 @@ def irfft2(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return sfft.irfft2(a, s=shape, workers=_FFT_WORKERS)
 
 
+@lru_cache(maxsize=4)
 def gaussian_label_spectrum(shape: tuple[int, int], sigma_cells: float) -> np.ndarray:
     """rfft2 of the regression target y (Eq. 3): a delta at shift 0 as in the
     paper when sigma is 0, else a narrow circular Gaussian centred at shift 0.
 
     The label sits at index (0, 0) rather than the image centre so the response
-    peak index *is* the shift (mod size): no fftshift per frame.
+    peak index *is* the shift (mod size): no fftshift per frame. One read-only
+    array per (shape, sigma), shared by every filter: a kept key would
+    otherwise hold its own copy (0.7 MB at 480 x 360).
     """
     h, w = shape
     if sigma_cells <= 0.0:
@@ -51,7 +55,9 @@ def gaussian_label_spectrum(shape: tuple[int, int], sigma_cells: float) -> np.nd
         dv = np.minimum(np.arange(h), h - np.arange(h)).astype(np.float32)
         du = np.minimum(np.arange(w), w - np.arange(w)).astype(np.float32)
         y = np.exp(-0.5 * (dv[:, None] ** 2 + du[None, :] ** 2) / sigma_cells**2).astype(np.float32)
-    return rfft2(y)
+    y_hat = rfft2(y)
+    y_hat.setflags(write=False)
+    return y_hat
 
 
 class KernelCorrelationFilter:
@@ -62,12 +68,19 @@ class KernelCorrelationFilter:
     scales k by a constant factor and with it the effective lambda.
     """
 
-    def __init__(self, shape: tuple[int, int], sigma: float, lam: float, label_sigma_cells: float):
+    def __init__(
+        self, shape: tuple[int, int], sigma: float, lam: float, label_sigma_cells: float,
+        spectra: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
+        """`spectra`: two complex64 (H, W // 2 + 1) arrays that `train` fills
+        with conj(z_hat) and alpha_hat instead of allocating them (a tracker
+        that keeps key frames owns their memory up front)."""
         self.shape = shape
         self.n_cells = shape[0] * shape[1]
         self.sigma = sigma
         self.lam = lam
         self._label_hat = gaussian_label_spectrum(shape, label_sigma_cells)
+        self._spectra = spectra
         self._z_hat_conj: np.ndarray | None = None
         self._z_sq = 0.0
         self._alpha_hat: np.ndarray | None = None
@@ -92,10 +105,12 @@ class KernelCorrelationFilter:
     def train(self, z: np.ndarray) -> None:
         """Learn alpha for key image z (Eq. 12): alpha_hat = y_hat / (k_hat^{zz} + lambda)."""
         z_hat = rfft2(z)
-        self._z_hat_conj = np.conj(z_hat)
+        conj_out, alpha_out = self._spectra if self._spectra is not None else (None, None)
+        self._z_hat_conj = np.conjugate(z_hat, out=conj_out)
         self._z_sq = float(np.vdot(z, z))
-        k_zz = self._kernel(z_hat, self._z_sq)
-        self._alpha_hat = self._label_hat / (rfft2(k_zz) + self.lam)
+        k_hat = rfft2(self._kernel(z_hat, self._z_sq))
+        k_hat += self.lam
+        self._alpha_hat = np.divide(self._label_hat, k_hat, out=alpha_out)
 
     def response(self, x: np.ndarray) -> np.ndarray:
         """Response over all circular shifts of x (Eq. 14)."""

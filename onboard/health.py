@@ -7,9 +7,14 @@ freshness and tracker quality. Pure: time comes in with every update.
                the primary tracker runs and frames arrive on time
     DEGRADED   trusted, but quality below degraded_quality (back at +5),
                the fallback tracker runs (no attitude), or the last frame
-               gap was longer than `degraded_gap_s`
+               gap was longer than `degraded_gap_s`; and for `recover_s`
+               after any of these or a LOST spell ended ("recovering")
     LOST       the newest result is untrusted after a pose was had, or no
                frame for `frame_timeout_s`
+
+The recovery dwell keeps a stuttering camera or a flickering match from
+flapping the state (each change is a STATUSTEXT on the telemetry link): the
+state turns good only after it has stayed good for `recover_s`.
 
 The MAVLink heartbeat (system_status) and the zenoh status carry the state.
 """
@@ -46,6 +51,7 @@ class HealthThresholds:
     degraded_gap_s: float
     degraded_quality: int
     start_grace_s: float
+    recover_s: float = 1.0  # problems gone this long before DEGRADED or LOST turns TRACKING
 
 
 class HealthMonitor:
@@ -60,6 +66,7 @@ class HealthMonitor:
         self._had_pose = False
         self._result: TrackResult | None = None
         self._fallback: str | None = None
+        self._problem: tuple[float, str] | None = None  # (when, what) the last problem was seen
         self._announced = False  # the first report counts as a change: outputs announce it
 
     def on_frame(self, now_s: float, result: TrackResult, fallback: str | None) -> HealthReport:
@@ -78,6 +85,17 @@ class HealthMonitor:
         return self._set(*self._classify(now_s))
 
     def _classify(self, now_s: float) -> tuple[Health, str]:
+        state, reason = self._classify_now(now_s)
+        if state in (Health.DEGRADED, Health.LOST):
+            self._problem = (now_s, reason)
+        elif state is Health.TRACKING and self._problem is not None:
+            seen_s, what = self._problem
+            if now_s - seen_s < self.th.recover_s:
+                return Health.DEGRADED, f"recovering ({what})"
+        return state, reason
+
+    def _classify_now(self, now_s: float) -> tuple[Health, str]:
+        """The state this instant calls for, before the recovery dwell."""
         th = self.th
         if self._last_frame_s is None:
             waited = now_s - self.start_s

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Generic, Protocol, TypeVar
+from typing import Callable, Generic, Protocol, TypeVar
 
 import numpy as np
 
@@ -64,8 +64,10 @@ class KeyframeMap(Generic[K]):
     """At most `capacity` keys (the least recently used go first) and the
     offsets measured between them."""
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, on_evict: Callable[[K], None] | None = None) -> None:
+        """`on_evict` is called with each key the map lets go of."""
         self.capacity = capacity
+        self._on_evict = on_evict
         self._keys: dict[int, K] = {}  # insertion order = least recently used first
         self._offsets: dict[tuple[int, int], _Offset] = {}
 
@@ -149,6 +151,8 @@ class KeyframeMap(Generic[K]):
         return moved
 
     def _evict(self, keyframe_id: int) -> None:
-        del self._keys[keyframe_id]
+        key = self._keys.pop(keyframe_id)
         for pair in [pr for pr in self._offsets if keyframe_id in pr]:
             del self._offsets[pair]
+        if self._on_evict is not None:
+            self._on_evict(key)

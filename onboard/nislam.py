@@ -89,8 +89,74 @@ class NislamParams:
 
 
 @dataclass
+class _KeySlot:
+    """The memory of one key frame: its projection, the refined images and
+    the filter's spectra (6 MB at 480 x 360), allocated once by `_KeyStore`."""
+
+    gray: np.ndarray
+    depth_m: np.ndarray
+    mask: np.ndarray
+    bgr: np.ndarray
+    gray_ref: np.ndarray
+    depth_ref: np.ndarray
+    count: np.ndarray
+    spectra: tuple[np.ndarray, np.ndarray]  # conj(z_hat), alpha_hat
+
+    @classmethod
+    def allocate(cls, shape: tuple[int, int]) -> "_KeySlot":
+        h, w = shape
+
+        def resident(a: np.ndarray) -> np.ndarray:
+            a.fill(0)  # written now, so the pages are resident from the start
+            return a
+
+        def grid() -> np.ndarray:
+            return resident(np.empty(shape, np.float32))
+
+        def spectrum() -> np.ndarray:
+            return resident(np.empty((h, w // 2 + 1), np.complex64))
+
+        return cls(grid(), grid(), grid(), resident(np.empty((h, w, 3), np.uint8)), grid(),
+                   grid(), grid(), (spectrum(), spectrum()))
+
+    def hold(self, img: AxonometricImage) -> AxonometricImage:
+        """`img` copied into this slot; the refined images start from it."""
+        np.copyto(self.gray, img.gray)
+        np.copyto(self.depth_m, img.depth_m)
+        np.copyto(self.mask, img.mask)
+        if img.bgr is not None:
+            np.copyto(self.bgr, img.bgr)
+        else:
+            self.bgr.fill(0)  # not the colour of the slot's previous key
+        np.copyto(self.gray_ref, img.gray)
+        np.copyto(self.depth_ref, img.depth_m)
+        np.copyto(self.count, img.mask)
+        return AxonometricImage(self.gray, self.depth_m, self.mask, img.res_m, self.bgr)
+
+
+class _KeyStore:
+    """Memory for the key frames the tracker can hold at once (the kept keys
+    and the one being made), allocated when the tracker is built. Key frames
+    then never allocate: the process is at its working size from the first
+    frame, so a long flight cannot creep towards the companion computer's
+    memory limit, and a soak shows any real leak plainly."""
+
+    def __init__(self, shape: tuple[int, int], slots: int) -> None:
+        self._free = [_KeySlot.allocate(shape) for _ in range(slots)]
+
+    def take(self) -> _KeySlot:
+        if not self._free:
+            raise RuntimeError("key store exhausted: a key frame was not given back")
+        return self._free.pop()
+
+    def give_back(self, slot: _KeySlot) -> None:
+        self._free.append(slot)
+
+
+@dataclass
 class _Key:
-    """Key frame state: the learned filter, the refined images and the pose."""
+    """Key frame state: the learned filter, the refined images and the pose.
+    The arrays live in `slot` (see _KeyStore)."""
 
     keyframe_id: int
     t_s: float
@@ -102,6 +168,7 @@ class _Key:
     count: np.ndarray  # W_k of Eq. 19b
     mask0: np.ndarray  # original key mask W_0
     filt: KernelCorrelationFilter
+    slot: _KeySlot
     layers: "_RotationResidual | None" = None
     shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
 
@@ -277,7 +344,11 @@ class NislamTracker:
         self.p = params
         self.shape = (params.grid_height, params.grid_width)
         self._key: _Key | None = None
-        self._map: KeyframeMap[_Key] = KeyframeMap(params.map_keyframes)
+        # The kept keys, and one more: a new key is made before the map lets
+        # the least recently used one go.
+        self._store = _KeyStore(self.shape, max(params.map_keyframes, 1) + 1)
+        self._map: KeyframeMap[_Key] = KeyframeMap(
+            params.map_keyframes, on_evict=lambda key: self._store.give_back(key.slot))
         self._prev: _Prev | None = None
         self._next_key_id = 0
         self._reset_counter = 0
@@ -594,14 +665,17 @@ class NislamTracker:
     def _new_key_from(self, prev: _Prev) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
         returns the replaced key's cloud for the map."""
-        finished = [] if self._key is None else [self._key_cloud(self._key)]
+        old = self._key
+        finished = [] if old is None else [self._key_cloud(old)]
         p = self.p
         res = adaptive_resolution(
             prev.cloud, p.grid_width, p.adaptive_mu, p.max_distance_m, p.len_hist, p.hist_sample,
             self.intr.height / self.intr.width,
         )
-        img = project(prev.cloud, np.eye(3), self.shape, res, with_colour=True)
-        filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells)
+        slot = self._store.take()
+        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True))
+        filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
+                                       slot.spectra)
         filt.train(_whiten(img))
         layers = _RotationResidual.train(img, p) if p.calibrate_time_offset else None
         self._key = _Key(
@@ -610,27 +684,31 @@ class NislamTracker:
             p_W_m=np.array(prev.p_W_m, dtype=np.float64),
             R_W_C=prev.R_W_C.copy(),
             img=img,
-            gray_ref=img.gray.copy(),
-            depth_ref=img.depth_m.copy(),
-            count=img.mask.copy(),
+            gray_ref=slot.gray_ref,
+            depth_ref=slot.depth_ref,
+            count=slot.count,
             mask0=img.mask,
             filt=filt,
+            slot=slot,
             layers=layers,
         )
         self._next_key_id += 1
         if self.p.map_keyframes > 0:
-            self._map.use(self._key)
+            self._map.use(self._key)  # the least recently used beyond capacity goes back
             if prev.base is not None:  # the new key's offset from the key its frame matched
                 self._map.add_offset(prev.base.keyframe_id, self._key.keyframe_id, prev.d_W_m,
                                      prev.var_W_m2)
+        elif old is not None:
+            self._store.give_back(old.slot)
         return finished
 
     def _key_cloud(self, key: _Key) -> KeyframeCloud:
         """The key as it is now: copies, since a kept key may be refined and
-        moved after the map consumer got it (same id: the newer one wins)."""
+        moved after the map consumer got it (same id: the newer one wins),
+        and its slot is re-used for a later key."""
         return KeyframeCloud(
-            key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C, key.img.res_m,
-            np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr,
+            key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C.copy(), key.img.res_m,
+            np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr.copy(),
         )
 
     # -------------------------------------------------------------- results

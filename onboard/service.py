@@ -258,7 +258,7 @@ class Service:
         self.tracker: SwitchingTracker | None = None
         self.health = HealthMonitor(HealthThresholds(
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
-            self.sc.start_grace_s), time.monotonic())
+            self.sc.start_grace_s, self.sc.recover_s), time.monotonic())
         self.ready = False
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result

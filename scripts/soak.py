@@ -4,9 +4,10 @@
 
 Runs `nislam run --replay FLIGHT --loop` (the flight forwards and backwards
 in turn) for the given time with the demo outputs (MAVLink to 127.0.0.1, zenoh
-on a free 127.0.0.1 port, the zenoh map capped at 8 MB), samples the
-process's resident memory (VmRSS) every 5 s, and reports RSS at start and end,
-per-frame latency percentiles per minute (the service's own statistics
+on a free 127.0.0.1 port, the zenoh map capped at 2 MB), samples the
+process's resident memory (VmRSS) every 5 s, and reports RSS at start and end
+(the last sample before the service's final summary) and its trend past
+minute 1, per-frame latency percentiles per minute (the service's own statistics
 periods: track + publish, on the loop thread) and dropped frames. Without
 --flight it renders a 20 s `circle` flight (640x480) first. Writes
 soak.json beside the service's metrics.json in --out.
@@ -22,6 +23,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 NISLAM = REPO / ".venv" / "bin" / "nislam"
@@ -66,7 +69,11 @@ def main() -> int:
     cfg.write_text(
         "[mavlink]\nenabled = true\nconnect = \"udpout:127.0.0.1:14550\"\n"
         f"[zenoh]\nenabled = true\nlisten = [\"tcp/127.0.0.1:{free_tcp_port()}\"]\n"
-        "map_max_mb = 8.0\n"
+        # The map held for late joiners grows by design up to map_max_mb
+        # (512 MB by default). 2 MB is full within the first minute and then
+        # evicts all along, so RSS past minute 1 shows the service itself,
+        # eviction path included, not the map filling up.
+        "map_max_mb = 2.0\n"
         "[service]\nstats_period_s = 10.0\n")
     seconds = args.minutes * 60.0
     proc = subprocess.Popen(
@@ -75,16 +82,19 @@ def main() -> int:
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     samples: list[tuple[float, float]] = []  # (seconds since start, RSS MB)
     lines: list[str] = []
+    summary_at: list[float] = []  # when the final summary began: the loop is over
 
     def read() -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
+            if line.startswith("source ") and not summary_at:
+                summary_at.append(time.monotonic() - t0)
             lines.append(line.rstrip())
             print(line.rstrip(), flush=True)
 
+    t0 = time.monotonic()
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    t0 = time.monotonic()
     while proc.poll() is None:
         rss = rss_mb(proc.pid)
         if rss is not None:
@@ -94,6 +104,10 @@ def main() -> int:
     if proc.returncode != 0:
         print(f"service exited with {proc.returncode}", file=sys.stderr)
         return 1
+    # Only samples of the running loop: at shutdown the process frees its
+    # holdings, and a sample then would hide growth.
+    if summary_at:
+        samples = [(t, r) for t, r in samples if t < summary_at[0]]
     metrics = json.loads((args.out / "run" / "metrics.json").read_text())
     periods = metrics["periods"]
     t_first = periods[0]["t_s"] if periods else 0.0
@@ -112,6 +126,11 @@ def main() -> int:
     # up to map_max_mb, the malloc arenas to the working set), so growth past
     # it is what a leak would show.
     minute1 = next((r for t, r in samples if t >= 60.0), None)
+    # The trend past minute 1 (least-squares slope), less sensitive to where
+    # the two end samples happen to fall than their difference.
+    late = [(t, r) for t, r in samples if t >= 60.0]
+    slope = (float(np.polyfit([t for t, _ in late], [r for _, r in late], 1)[0]) * 60.0
+             if len(late) >= 3 else None)
     report = {
         "minutes": args.minutes,
         "frames": metrics["frames"],
@@ -125,6 +144,7 @@ def main() -> int:
         "rss_growth_mb": (samples[-1][1] - warm) if samples and warm else None,
         "rss_1min_mb": minute1,
         "rss_growth_after_1min_mb": (samples[-1][1] - minute1) if minute1 else None,
+        "rss_trend_after_1min_mb_per_min": slope,
         "frames_late_at_source": metrics.get("frames_late_at_source"),
         "rss_samples": samples,
         "per_minute": table,
@@ -138,6 +158,8 @@ def main() -> int:
     if minute1 is not None:
         print(f"RSS {minute1:.1f} MB after 60 s -> {samples[-1][1]:.1f} MB at the end "
               f"({report['rss_growth_after_1min_mb']:+.1f} MB)")
+    if slope is not None:
+        print(f"RSS trend after 60 s: {slope:+.2f} MB per minute")
     print("minute   Hz   p50 ms  p95 ms  p99 ms  dropped (worst period of the minute)")
     for row in table:
         print(f"{row['minute']:>6} {row['hz']:5.1f} {row['ms_p50']:7.1f} {row['ms_p95']:7.1f} "

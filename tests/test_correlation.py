@@ -248,3 +248,20 @@ def test_psr_sidelobe_excludes_window_around_peak():
     side = np.delete(r.ravel(), v0 * W + u0)
     assert peak0.psr == pytest.approx((1.5 - side.mean()) / side.std(), rel=1e-9)
     assert peak0.psr < peak.psr
+
+
+def test_training_into_given_spectra_matches_and_overwrites_them() -> None:
+    """A filter handed its spectrum memory (a kept key's slot) trains into it
+    and answers exactly as one that allocates; training the next key over the
+    same memory replaces the first key's filter completely."""
+    z1 = _smooth_image(1).astype(np.float32)
+    z2 = _smooth_image(2).astype(np.float32)
+    x = _smooth_image(3).astype(np.float32)
+    spectra = tuple(np.full((H, W // 2 + 1), np.nan, np.complex64) for _ in range(2))
+    own = KernelCorrelationFilter((H, W), SIGMA, LAM, 1.0, spectra)
+    own.train(z1)
+    assert np.array_equal(own.response(x), _trained(z1, 1.0).response(x))
+    again = KernelCorrelationFilter((H, W), SIGMA, LAM, 1.0, spectra)
+    again.train(z2)
+    assert np.array_equal(again.response(x), _trained(z2, 1.0).response(x))
+    assert np.all(np.isfinite(spectra[0])) and np.all(np.isfinite(spectra[1]))

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from fake_results import track_result
 
 from onboard.frames import TrackState
 from onboard.health import Health, HealthMonitor, HealthThresholds
 
 TH = HealthThresholds(frame_timeout_s=0.5, degraded_gap_s=0.2, degraded_quality=20,
-                      start_grace_s=10.0)
+                      start_grace_s=10.0, recover_s=0.0)  # no dwell: each rule on its own
+TH_DWELL = dataclasses.replace(TH, recover_s=1.0)
 
 
 def test_starting_then_tracking_and_the_first_report_is_announced() -> None:
@@ -61,3 +64,37 @@ def test_low_quality_and_fallback_are_degraded_with_hysteresis() -> None:
                       Health.TRACKING]
     r = h.on_frame(t, track_result(t, quality=80), "fastorb")
     assert r.state is Health.DEGRADED and "fallback tracker fastorb" in r.reason
+
+
+def test_recovery_waits_recover_s_without_a_problem() -> None:
+    """A camera that stutters (a frame gap every 0.5 s) keeps the state
+    degraded instead of flapping it; it turns tracking only once the gaps
+    have stayed away for recover_s, and a lost spell ends the same way."""
+    h = HealthMonitor(TH_DWELL, start_s=0.0)
+    assert h.on_frame(1.0, track_result(1.0), None).state is Health.TRACKING
+    t, t_gap, states = 1.0, 0.0, []
+    for k in range(60):  # 30 Hz for 2 s, a 0.3 s gap before every 15th frame
+        if k % 15 == 14:
+            t, t_gap = t + 0.3, t + 0.3
+        else:
+            t += 0.033
+        states.append(h.on_frame(t, track_result(t), None))
+    assert all(r.state is Health.DEGRADED for r in states[14:]), [r.state for r in states]
+    assert "recovering (frame gap 0.30 s)" in {r.reason for r in states}
+    assert sum(r.changed for r in states) == 1  # one change, not one per gap
+    while t < t_gap + 1.5:  # then no more gaps
+        t += 0.033
+        r = h.on_frame(t, track_result(t), None)
+        assert r.state is (Health.TRACKING if t - t_gap >= 1.0 else Health.DEGRADED), t - t_gap
+    # Lost (an untrusted result), then trusted again: recovering for 1 s.
+    t += 0.033
+    assert h.on_frame(t, track_result(t, trusted=False, lost_reason="no attitude"),
+                      None).state is Health.LOST
+    t_lost = t
+    t += 0.033
+    r = h.on_frame(t, track_result(t), None)
+    assert (r.state, r.reason) == (Health.DEGRADED, "recovering (no attitude)")
+    while t < t_lost + 1.2:
+        t += 0.033
+        r = h.on_frame(t, track_result(t), None)
+    assert r.state is Health.TRACKING

@@ -251,6 +251,72 @@ def test_pose_chain_across_key_frame_switches(scene):
         assert np.max(np.abs(e)) < 1.0  # mm
 
 
+def _key_chain(tracker, scene, n_keys: int):
+    """Track `n_keys` frames that each start a key (psr_keyframe huge); steps
+    of whole cells as in the test above. Yields (result, true pose)."""
+    att = TableAttitude()
+    c = np.zeros(3)
+    for k in range(n_keys):
+        R = _rot(z=-15.0 + 2.0 * k)
+        t = round(k * DT, 9)
+        att.table[t] = R
+        bgr, depth = scene.render(R, c)
+        r = tracker.track(RgbdFrame(t, bgr, depth), att)
+        yield r, (R, c.copy())
+        c = c + R @ np.array([2 * r.res_m, -r.res_m, -0.004])
+
+
+@pytest.mark.parametrize("map_keyframes", [0, 2])
+def test_key_memory_is_recycled_and_handed_out_clouds_stay_intact(scene, map_keyframes):
+    """Twelve key frames through a store of map_keyframes + 1 slots: each new
+    key re-uses the memory of one the map let go, so the chain stays exact
+    (a slot still in use being overwritten would break the kept keys) and the
+    clouds handed out earlier keep their content (they are copies, colour
+    included, not views of a slot that is re-used)."""
+    tracker = NislamTracker(INTR, _params(psr_keyframe=1e9, map_keyframes=map_keyframes))
+    handed_out = []
+    poses, results = [], []
+    for r, pose in _key_chain(tracker, scene, 12):
+        assert r.trusted and r.new_keyframe
+        results.append(r)
+        poses.append(pose)
+        for cloud in r.finished_keyframes:
+            handed_out.append((cloud, cloud.depth_m.copy(), cloud.gray.copy(), cloud.bgr.copy()))
+    assert [c.keyframe_id for c, *_ in handed_out] == list(range(11))
+    for cloud, depth, gray, bgr in handed_out:
+        assert np.array_equal(cloud.depth_m, depth)
+        assert np.array_equal(cloud.gray, gray)
+        assert np.array_equal(cloud.bgr, bgr)
+    # Distinct keys, distinct content: a cloud is not a later key's image.
+    assert not np.array_equal(handed_out[0][3], handed_out[-1][3])
+    for e in _errors_mm(results, poses):
+        assert np.max(np.abs(e)) < 1.0  # mm
+
+
+def test_key_frames_allocate_no_memory_after_start(scene):
+    """The tracker takes the memory for its kept keys when it is built: eight
+    new key frames kept in the map (capacity 8) leave the traced memory where
+    it was after the first, instead of about 1.7 MB more per key at this grid
+    size. Only small per-key state (pose, offsets) may grow."""
+    import tracemalloc
+
+    tracker = NislamTracker(INTR, _params(psr_keyframe=1e9, map_keyframes=8))
+    chain = _key_chain(tracker, scene, 9)
+    tracemalloc.start()  # before the first frame: its per-frame state is replaced, not added
+    try:
+        r, _ = next(chain)
+        assert r.new_keyframe
+        del r
+        before = tracemalloc.get_traced_memory()[0]
+        for r, _ in chain:
+            assert r.new_keyframe
+            del r  # the handed-out cloud copies are the caller's, not the tracker's
+        grown_mb = (tracemalloc.get_traced_memory()[0] - before) / 1e6
+    finally:
+        tracemalloc.stop()
+    assert grown_mb < 0.5, f"{grown_mb:.2f} MB kept after 8 key frames"
+
+
 # ------------------------------------------------------------------ lost / restart
 def test_no_attitude_is_not_trusted(scene):
     tracker = NislamTracker(INTR, _params())
