@@ -202,7 +202,11 @@ def test_service_survives_a_damaged_flight_and_never_sends_an_untrusted_pose(
     after = [m["reset_counter"] for m, t in zip(odometry, times) if t > t1]
     assert before and after and set(before) == {0} and min(after) >= 1
     assert LOST in [m["system_status"] for m in of(msgs, "HEARTBEAT")]
-    assert "lost" in states and states[-1] == "tracking", states
+    # Resumed: tracking again after the last lost spell (the state may end
+    # degraded if this machine paused near the end: recover_s has not run out).
+    assert "lost" in states, states
+    last_lost = len(states) - 1 - states[::-1].index("lost")
+    assert "tracking" in states[last_lost + 1:], states
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["lost_reasons"].get("no attitude", 0) >= 5  # frames in the gap, said why
     expected = json.loads((seq / "faults.json").read_text())["expected"]
