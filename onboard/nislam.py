@@ -162,15 +162,31 @@ class _Key:
     t_s: float
     p_W_m: np.ndarray
     R_W_C: np.ndarray
-    img: AxonometricImage
-    gray_ref: np.ndarray  # refined gray (count-weighted mean, Eq. 19a)
-    depth_ref: np.ndarray  # refined depth
-    count: np.ndarray  # W_k of Eq. 19b
-    mask0: np.ndarray  # original key mask W_0
+    img: AxonometricImage  # the key's projection, held in `slot`
     filt: KernelCorrelationFilter
     slot: _KeySlot
     layers: "_RotationResidual | None" = None
     shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
+
+    @property
+    def gray_ref(self) -> np.ndarray:
+        """Refined gray (count-weighted mean, Eq. 19a)."""
+        return self.slot.gray_ref
+
+    @property
+    def depth_ref(self) -> np.ndarray:
+        """Refined depth."""
+        return self.slot.depth_ref
+
+    @property
+    def count(self) -> np.ndarray:
+        """W_k of Eq. 19b."""
+        return self.slot.count
+
+    @property
+    def mask0(self) -> np.ndarray:
+        """Original key mask W_0."""
+        return self.slot.mask
 
     def predicted_shift(self, t_s: float) -> tuple[float, float]:
         """Constant-velocity prediction of the shift at `t_s` against this key,
@@ -684,10 +700,6 @@ class NislamTracker:
             p_W_m=np.array(prev.p_W_m, dtype=np.float64),
             R_W_C=prev.R_W_C.copy(),
             img=img,
-            gray_ref=slot.gray_ref,
-            depth_ref=slot.depth_ref,
-            count=slot.count,
-            mask0=img.mask,
             filt=filt,
             slot=slot,
             layers=layers,
@@ -707,7 +719,7 @@ class NislamTracker:
         moved after the map consumer got it (same id: the newer one wins),
         and its slot is re-used for a later key."""
         return KeyframeCloud(
-            key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C.copy(), key.img.res_m,
+            key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C, key.img.res_m,
             np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr.copy(),
         )
 
