@@ -31,7 +31,9 @@ $(MAVPROXY): $(STAMP)
 	$(BIN)/python -m pip install --no-deps 'MAVProxy==1.8.75'
 	touch $@
 
+# The architecture's import contracts (pyproject.toml [tool.importlinter]), then the tests.
 test: $(STAMP) $(MAVPROXY)
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

@@ -24,9 +24,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from .attitude import IDENTITY_Q_XYZW, AttitudeSample, Quat, to_body_sample
-from .base import Counters, DriverThread
-from .fc_link import FcLink
+from drivers.fc_link import FcLink
+from onboard.core.attitude import AttitudeSample, to_body_sample
+from onboard.core.rotations import IDENTITY_Q_XYZW, Quat
+from onboard.core.sources import Counters, DriverThread
 
 log = logging.getLogger(__name__)
 

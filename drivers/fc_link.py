@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
-from .base import Backoff, Counters, DriverThread
+from onboard.core.sources import Backoff, Counters, DriverThread
 
 log = logging.getLogger(__name__)
 

@@ -27,8 +27,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import reduce
 
-from .attitude import IDENTITY_Q_XYZW, AttitudeSample, Quat, to_body_sample
-from .base import Backoff, Counters, DriverThread
+from onboard.core.attitude import AttitudeSample, to_body_sample
+from onboard.core.rotations import IDENTITY_Q_XYZW, Quat
+from onboard.core.sources import Backoff, Counters, DriverThread
 
 log = logging.getLogger(__name__)
 

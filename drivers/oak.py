@@ -43,12 +43,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from onboard.frames import RgbdFrame
-from sim_replay.tum import CameraModel
-
-from .attitude import IDENTITY_Q_XYZW, AttitudeSample, Quat, quat_mul, to_body_sample
-from .base import Backoff, Counters, DriverThread
-from .camera import FrameSlot
+from onboard.core.attitude import AttitudeSample, to_body_sample
+from onboard.core.camera import CameraModel
+from onboard.core.messages import RgbdFrame
+from onboard.core.rotations import IDENTITY_Q_XYZW, Quat, quat_mul
+from onboard.core.sources import Backoff, Counters, DriverThread, FrameSlot
 
 log = logging.getLogger(__name__)
 

@@ -37,15 +37,16 @@ sys.path.insert(0, str(REPO / "tests"))  # the peer helpers live with the tests
 from fake_results import track_result  # noqa: E402
 from subproc import JsonLinesProcess, free_port, python_script  # noqa: E402
 
-from onboard.bench import attitude_error_model, pin_one_core  # noqa: E402
-from onboard.config import Config, MavlinkConfig, ZenohConfig  # noqa: E402
-from onboard.mapcodec import encode_keyframe  # noqa: E402
-from onboard.mavlink_out import MavlinkOutput  # noqa: E402
-from onboard.outputs import NullOutput, Output, OutputGroup  # noqa: E402
-from onboard.trackers import make_tracker  # noqa: E402
-from onboard.zenoh_out import ZenohOutput  # noqa: E402
+from onboard.app.bench import attitude_error_model, pin_one_core
+from onboard.app.config import Config
+from onboard.fusion.registry import make_tracker
+from onboard.outputs.group import NullOutput, Output, OutputGroup
+from onboard.outputs.mapcodec import encode_keyframe
+from onboard.outputs.mavlink import MavlinkOutput
+from onboard.outputs.settings import MavlinkConfig, ZenohConfig
+from onboard.outputs.zenoh_out import ZenohOutput
 from sim_replay.attitude import attitude_for_replay  # noqa: E402
-from sim_replay.tum import open_sequence  # noqa: E402
+from sim_replay.tum import open_sequence
 
 PEER = REPO / "tests" / "mavlink_peer.py"
 NISLAM = REPO / ".venv" / "bin" / "nislam"

@@ -22,15 +22,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from onboard.core.rotations import mount_rotation
 from sim_replay.flights import SCENARIOS, Flight, scenario  # noqa: E402
 from sim_replay.render import Renderer  # noqa: E402
 from sim_replay.scene import make_scene  # noqa: E402
-from sim_replay.sensors import (  # noqa: E402
-    ColourNoise,
-    depth_to_png_units,
-    measure_depth,
-    mount_rotation,
-)
+from sim_replay.sensors import ColourNoise, depth_to_png_units, measure_depth
 from sim_replay.sim import SimOptions  # noqa: E402
 
 

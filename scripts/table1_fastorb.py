@@ -39,18 +39,15 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from onboard.config import load_config  # noqa: E402
-from onboard.fastorb import FastOrbParams, FastOrbTracker  # noqa: E402
-from onboard.fastorb_map import sample_depth  # noqa: E402
-from onboard.fastorb_match import (  # noqa: E402
-    LkSettings,
-    epipolar_inliers,
-    gms_inliers,
-    track_lk,
-)
-from onboard.fastorb_motion import back_project, make_pose, predict_uam, project  # noqa: E402
-from onboard.frames import RgbdFrame  # noqa: E402
-from sim_replay.tum import open_sequence  # noqa: E402
+from onboard.app.config import load_config
+from onboard.core.messages import RgbdFrame
+from onboard.core.se3 import make_pose
+from onboard.fastorb.local_map import sample_depth
+from onboard.fastorb.matching import LkSettings, epipolar_inliers, gms_inliers, track_lk
+from onboard.fastorb.motion import back_project, predict_uam, project
+from onboard.fastorb.params import FastOrbParams
+from onboard.fastorb.tracker import FastOrbTracker
+from sim_replay.tum import open_sequence
 
 DEFAULT_SEQ = REPO.parent / "shared" / "data" / "tum_fr1_rpy"
 
@@ -230,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def open_sequence_intrinsics(K: np.ndarray, frames: list[RgbdFrame]):
-    from onboard.frames import CameraIntrinsics
+    from onboard.core.camera import CameraIntrinsics
 
     h, w = frames[0].depth_m.shape
     return CameraIntrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h)

@@ -16,11 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from drivers.attitude import quat_slerp, quat_to_matrix
 from onboard import NislamError
-from onboard.trajectory import Trajectory
-
-from .tum import Sequence
+from onboard.core.rotations import quat_slerp, quat_to_matrix
+from onboard.core.trajectory import Trajectory
+from sim_replay.tum import Sequence
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ Depth is therefore exact at pixel centres (to float rounding); colour is the
 texture as a pinhole camera with a box-filtering pixel would see it, to a mip
 level. Back-facing and out-of-frustum tiles are culled before any per-pixel
 work. Pixel (u, v) has its centre at integer coordinates, as in OpenCV and in
-`onboard.projection` (ray ((u - cx) / fx, (v - cy) / fy, 1)).
+`onboard.nislam.projection` (ray ((u - cx) / fx, (v - cy) / fy, 1)).
 """
 
 from __future__ import annotations
@@ -27,10 +27,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from onboard.frames import CameraIntrinsics
-
-from .scene import Scene
-from .textures import make_texture, mip_levels
+from onboard.core.camera import CameraIntrinsics
+from sim_replay.scene import Scene
+from sim_replay.textures import make_texture, mip_levels
 
 log = logging.getLogger(__name__)
 

@@ -16,26 +16,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-
-from .attitude import AttitudeErrorModel, perturb_samples
+from sim_replay.attitude import AttitudeErrorModel, perturb_samples
 
 # --------------------------------------------------------------------------- mounts
-
-# Columns = camera x, y, z expressed in the body frame (FRD), docs/design.md.
-MOUNTS: dict[str, np.ndarray] = {
-    # camera z = body x (looks ahead), camera x = body y, camera y = body z
-    "forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
-    # camera z = body z (looks down), camera x = body y, camera y = -body x (image top = nose)
-    "down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-}
-
-
-def mount_rotation(name: str) -> np.ndarray:
-    """R_B_C of a named mount preset."""
-    try:
-        return MOUNTS[name].copy()
-    except KeyError:
-        raise NislamError(f"unknown camera mount {name!r} (known: {', '.join(MOUNTS)})") from None
 
 
 # --------------------------------------------------------------------------- depth

@@ -15,7 +15,6 @@ sim` or `nislam faults` did not write is refused (sim_replay.outdir).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import shutil
@@ -34,16 +33,17 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from onboard import NislamError, __version__
-from onboard.frames import CameraIntrinsics
-from onboard.trajectory import write_tum
-
-from .attitude import AttitudeErrorModel
-from .faults import inject_faults, parse_spec
-from .flights import Flight, scenario
-from .outdir import SIM_MANIFEST, prepare_out_dir
-from .render import Renderer
-from .scene import make_scene
-from .sensors import (
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.rotations import mount_rotation
+from onboard.core.trajectory import write_tum
+from sim_replay.attitude import AttitudeErrorModel
+from sim_replay.fault_plan import parse_spec
+from sim_replay.faults import inject_faults
+from sim_replay.flights import Flight, scenario
+from sim_replay.outdir import SIM_MANIFEST, prepare_out_dir
+from sim_replay.render import Renderer
+from sim_replay.scene import make_scene
+from sim_replay.sensors import (
     PERFECT_DEPTH,
     AhrsModel,
     ColourNoise,
@@ -53,10 +53,7 @@ from .sensors import (
     depth_to_png_units,
     measure_attitude,
     measure_depth,
-    mount_rotation,
 )
-
-log = logging.getLogger(__name__)
 
 FOCAL_PER_WIDTH = 525.0 / 640.0  # 63 deg horizontal field of view (Kinect / OAK-D class)
 # PNG level 1 with the SUB filter: a third of the default's encode time at the

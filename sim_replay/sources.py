@@ -3,7 +3,7 @@ through the same interfaces as the hardware drivers.
 
 - `ReplayClock` maps our monotonic clock onto the recording's time base, so
   replayed stamps stay the recording's own.
-- `ReplayCamera` is a `drivers.camera.CameraSource`: it publishes each frame
+- `ReplayCamera` is a `onboard.core.sources.CameraSource`: it publishes each frame
   into a newest-frame slot FRAME_DELIVERY_S after the replay clock reaches
   its stamp (decoding it before), and closes the slot after the last one.
 - `ReplayAttitude` pushes `AttitudeSample`s (R_W_B) into a sink when the
@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.attitude import AttitudeBuffer, AttitudeSample, quat_to_matrix
-from drivers.base import DriverThread
-from drivers.camera import FrameSlot
 from onboard import NislamError
-from onboard.frames import RgbdFrame
-
-from .tum import CameraModel, Sequence, open_sequence
+from onboard.core.attitude import AttitudeBuffer, AttitudeSample
+from onboard.core.camera import CameraModel
+from onboard.core.messages import RgbdFrame
+from onboard.core.rotations import quat_to_matrix
+from onboard.core.sources import DriverThread, FrameSlot
+from sim_replay.tum import Sequence, open_sequence
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ class Replay:
         self.camera.start()
 
     def stop(self, timeout_s: float = 5.0) -> bool:
-        """Stop both; `stop_times_s` records each join, as drivers.hardware.Hardware."""
+        """Stop both; `stop_times_s` records each join, as onboard.app.hardware.Hardware."""
         ok = True
         for t in (self.camera, self.attitude):
             if t is not None:

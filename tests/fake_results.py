@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from onboard.frames import KeyframeCloud, TrackResult, TrackState
+from onboard.core.messages import KeyframeCloud, TrackResult, TrackState
 
 POSE_VAR = np.array([1e-4, 2e-4, 3e-4, 4e-6, 5e-6, 6e-6])
 

@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.trajectory import Trajectory
+from onboard.core.trajectory import Trajectory
 from sim_replay.attitude import (
     AttitudeErrorModel,
     AttitudeSeries,

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.attitude import AttitudeBuffer
 from drivers.autopilot_attitude import AutopilotAttitude, BootClock
 from drivers.fc_link import FcLink
+from onboard.core.attitude import AttitudeBuffer
 
 PEER = Path(__file__).resolve().parent / "peers" / "mavlink_autopilot.py"
 WAIT_S = 60.0

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.config import Config, load_config
-from onboard.ply import read_ply
-from onboard.replay import RESULT_FILES, replay
-from onboard.trajectory import read_tum
+from onboard.app.config import Config, load_config
+from onboard.app.replay import RESULT_FILES, replay
+from onboard.core.trajectory import read_tum
+from onboard.outputs.ply import read_ply
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURE = "fixtures/tum_fr3_office_16frames"
@@ -36,7 +36,7 @@ def nislam(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     env = dict(os.environ, MPLBACKEND="Agg")
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
     return subprocess.run(
-        [sys.executable, "-m", "onboard.cli", *args],
+        [sys.executable, "-m", "onboard.app.cli", *args],
         cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=300,
     )
 
@@ -197,7 +197,7 @@ def test_replay_without_groundtruth(fixture_seq: Path, tmp_path: Path) -> None:
 
 
 def test_verbose_flag_before_or_after_the_command() -> None:
-    from onboard.cli import build_parser
+    from onboard.app.cli import build_parser
 
     parser = build_parser()
     assert parser.parse_args(["-vv", "bench"]).verbose == 2
@@ -207,13 +207,13 @@ def test_verbose_flag_before_or_after_the_command() -> None:
 
 @pytest.mark.parametrize(("exc", "code"), [(KeyboardInterrupt, 130), (RuntimeError, 2)])
 def test_exit_codes_for_interrupt_and_bugs(monkeypatch, capsys, tmp_path, exc, code) -> None:
-    import onboard.replay
-    from onboard.cli import main
+    import onboard.app.replay
+    from onboard.app.cli import main
 
     def boom(*_args, **_kwargs):
         raise exc("boom")
 
-    monkeypatch.setattr(onboard.replay, "replay", boom)
+    monkeypatch.setattr(onboard.app.replay, "replay", boom)
     root = logging.getLogger()
     # main() installs its own stderr handler; give pytest's back afterwards.
     monkeypatch.setattr(root, "handlers", list(root.handlers))

@@ -9,16 +9,10 @@ from pathlib import Path
 import pytest
 
 from onboard import NislamError
-from onboard.config import (
-    RULES,
-    SECTIONS,
-    Config,
-    config_to_dict,
-    config_to_toml,
-    load_config,
-)
-from onboard.nislam import NislamParams
-from onboard.trackers import TRACKER_NAMES, make_tracker
+from onboard.app.config import SECTIONS, Config, config_to_dict, config_to_toml, load_config
+from onboard.app.config_rules import RULES
+from onboard.fusion.registry import TRACKER_NAMES, make_tracker
+from onboard.nislam.params import NislamParams
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -178,7 +172,7 @@ def test_profiles_load() -> None:
 
 
 def test_tracker_factory() -> None:
-    from onboard.frames import CameraIntrinsics
+    from onboard.core.camera import CameraIntrinsics
 
     intr = CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
     tracker = make_tracker("nislam", intr, Config())

@@ -1,6 +1,6 @@
 """Kernel correlation filter (NI-SLAM Sec. IV-B/C): shifts, sub-cell peak, PSR.
 
-Conventions under test (onboard/correlation.py): arrays (H, W) indexed [v, u];
+Conventions under test (onboard/nislam/correlation.py): arrays (H, W) indexed [v, u];
 a current image x = np.roll(z, (dv, du), axis=(0, 1)) (content moved right/down)
 must give Peak.du_cells = du, Peak.dv_cells = dv.
 """
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from onboard.correlation import KernelCorrelationFilter, find_peak
+from onboard.nislam.correlation import KernelCorrelationFilter, find_peak
 
 H, W = 48, 64  # small, non-square grid: rows and columns must not be swapped
 SIGMA = 0.2  # authors' kernel sigma

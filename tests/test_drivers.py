@@ -12,21 +12,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.attitude import (
-    MOUNT_R_B_C,
-    R_NED_ENU,
-    AttitudeBuffer,
-    AttitudeSample,
-    matrix_to_quat,
-    mount_rotation,
-    quat_mul,
-    to_body_sample,
-)
-from drivers.base import Backoff, Counters, DriverThread
-from drivers.camera import FrameSlot
 from onboard import NislamError
-from onboard.config import Config, load_config
-from onboard.frames import RgbdFrame
+from onboard.app.config import Config, load_config
+from onboard.core.attitude import AttitudeBuffer, AttitudeSample, to_body_sample
+from onboard.core.messages import RgbdFrame
+from onboard.core.rotations import MOUNT_R_B_C, R_NED_ENU, matrix_to_quat, mount_rotation, quat_mul
+from onboard.core.sources import Backoff, Counters, DriverThread, FrameSlot
 
 
 def yaw_q(rad: float) -> tuple[float, float, float, float]:
@@ -200,7 +191,7 @@ def test_mount_rotation_presets_and_custom() -> None:
     assert np.allclose(mount_rotation("forward"), MOUNT_R_B_C["forward"])
     q = tuple(Rotation.from_euler("y", 30, degrees=True).as_quat())
     assert np.allclose(mount_rotation("custom", q), Rotation.from_quat(q).as_matrix())
-    with pytest.raises(ValueError):
+    with pytest.raises(NislamError):
         mount_rotation("sideways")
 
 
@@ -308,8 +299,8 @@ def test_importing_drivers_has_no_side_effects() -> None:
     """No depthai, no pymavlink, no MAVLINK20 until a driver needs them."""
     code = (
         "import os, sys\n"
-        "import drivers.attitude, drivers.camera, drivers.myahrs, drivers.fc_link\n"
-        "import drivers.autopilot_attitude, drivers.oak, drivers.hardware, drivers.recorder\n"
+        "import onboard.core.attitude, onboard.core.sources, drivers.myahrs, drivers.fc_link\n"
+        "import drivers.autopilot_attitude, drivers.oak, onboard.app.hardware, onboard.app.record\n"
         "import sim_replay.sources\n"
         "assert 'depthai' not in sys.modules, 'depthai imported'\n"
         "assert 'pymavlink' not in sys.modules, 'pymavlink imported'\n"

@@ -9,15 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.evaluation import (
-    evaluate,
-    ground_truth_at,
-    plot_trajectory,
-    rpe_pairs_by_time,
-    umeyama_se3,
-)
-from onboard.ply import read_ply, write_ply
-from onboard.trajectory import Trajectory, read_tum, write_tum
+from onboard.core.evaluation import evaluate, ground_truth_at, rpe_pairs_by_time, umeyama_se3
+from onboard.core.trajectory import Trajectory, read_tum, write_tum
+from onboard.outputs.plot import plot_trajectory
+from onboard.outputs.ply import read_ply, write_ply
 
 RATE_HZ = 30.0
 N_POSES = 300

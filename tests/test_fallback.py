@@ -1,4 +1,4 @@
-"""SwitchingTracker (onboard/fallback.py): the fallback while the attitude is
+"""SwitchingTracker (onboard/fusion/switching.py): the fallback while the attitude is
 missing, one world for the outputs, reset_counter bumped at each switch."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 from fake_results import track_result
 from scipy.spatial.transform import Rotation
 
-from onboard.fallback import NO_ATTITUDE, SwitchingTracker
-from onboard.frames import RgbdFrame, TrackResult
+from onboard.core.messages import RgbdFrame, TrackResult
+from onboard.fusion.switching import NO_ATTITUDE, SwitchingTracker
 
 DT = 1.0 / 30.0
 

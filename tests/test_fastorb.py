@@ -17,18 +17,13 @@ import pytest
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
-from onboard.fastorb import FastOrbParams, FastOrbTracker
-from onboard.fastorb_match import epipolar_inliers, gms_inliers, hamming, match_by_projection
-from onboard.fastorb_motion import (
-    FrameClock,
-    inverse,
-    make_pose,
-    predict_uam,
-    se3_exp,
-    se3_log,
-    se3_power,
-)
-from onboard.frames import CameraIntrinsics, RgbdFrame, TrackState
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.messages import RgbdFrame, TrackState
+from onboard.core.se3 import inverse, make_pose, se3_exp, se3_log, se3_power
+from onboard.fastorb.matching import epipolar_inliers, gms_inliers, hamming, match_by_projection
+from onboard.fastorb.motion import FrameClock, predict_uam
+from onboard.fastorb.params import FastOrbParams
+from onboard.fastorb.tracker import FastOrbTracker
 
 INTR = CameraIntrinsics(fx=517.3, fy=516.5, cx=318.6, cy=255.3, width=640, height=480)
 K = np.array([[INTR.fx, 0, INTR.cx], [0, INTR.fy, INTR.cy], [0, 0, 1.0]])
@@ -477,8 +472,8 @@ def test_config_section_reaches_the_tracker() -> None:
     """[fastorb] is read from FastOrbParams; its values reach the tracker and
     the range rules name the key."""
     from onboard import NislamError
-    from onboard.config import load_config
-    from onboard.trackers import make_tracker
+    from onboard.app.config import load_config
+    from onboard.fusion.registry import make_tracker
 
     cfg = load_config(None, {"tracker.name": "fastorb", "fastorb.orb_features": 500,
                              "fastorb.use_motion_model": False})
@@ -495,9 +490,9 @@ def test_motion_model_seeding_keeps_more_matches_on_fast_motion(room: Room) -> N
     """Table I in miniature: under fast motion (4 x the test flight's rates)
     LK seeded by the UAM prediction (Eq. 16) keeps far more verified, correct
     matches than plain KLT from the old positions (measured: 0.96 vs 0.20)."""
-    from onboard.fastorb_map import sample_depth
-    from onboard.fastorb_match import LkSettings, track_lk
-    from onboard.fastorb_motion import back_project, project
+    from onboard.fastorb.local_map import sample_depth
+    from onboard.fastorb.matching import LkSettings, track_lk
+    from onboard.fastorb.motion import back_project, project
 
     poses = flight(4, speed=4.0)
     T_cw = [inverse(pose_matrix(R, c)) for R, c in poses]
@@ -526,7 +521,7 @@ def test_rgbd_residual_jacobian_matches_finite_differences() -> None:
     """The disparity row (bf / z, ORB-SLAM2's RGB-D term) and the pixel rows
     of the refinement's Jacobian agree with central differences of the
     residuals under a left perturbation exp(xi^) T_cw."""
-    from onboard.fastorb_pose import _residuals
+    from onboard.fastorb.pose import _residuals
 
     rng = np.random.default_rng(8)
     obj = np.column_stack([rng.uniform(-1, 1, 20), rng.uniform(-1, 1, 20), rng.uniform(1, 3, 20)])
@@ -548,8 +543,8 @@ def test_compiled_normal_equations_match_the_residuals() -> None:
     """The refinement's one-pass Gauss-Newton system (and the gates' residual
     norms) equal those built from `_residuals` with Huber weights, points
     without depth and unselected points included."""
-    from onboard.fastorb_kernels import pose_normal_equations, pose_residual_norms
-    from onboard.fastorb_pose import _residuals
+    from onboard.fastorb.kernels import pose_normal_equations, pose_residual_norms
+    from onboard.fastorb.pose import _residuals
 
     rng = np.random.default_rng(13)
     obj = np.column_stack([rng.uniform(-1, 1, 60), rng.uniform(-1, 1, 60), rng.uniform(1, 3, 60)])
@@ -578,7 +573,7 @@ def test_compiled_normal_equations_match_the_residuals() -> None:
 def test_sample_depth_equals_numpy_reference() -> None:
     """The compiled depth look-up gives the numpy form's values bit for bit:
     bilinear inside a surface, 0 on depth edges, holes and out of range."""
-    from onboard.fastorb_map import sample_depth
+    from onboard.fastorb.local_map import sample_depth
 
     rng = np.random.default_rng(14)
     depth = rng.uniform(0.5, 4.0, (48, 64)).astype(np.float32)
@@ -606,7 +601,7 @@ def test_sample_depth_equals_numpy_reference() -> None:
 def test_rgbd_refinement_recovers_the_pose_from_a_perturbed_start() -> None:
     """Exact pixels and depths: Gauss-Newton with the disparity term lands on
     the true pose from 2 cm / 1 deg away."""
-    from onboard.fastorb_pose import refine_pose
+    from onboard.fastorb.pose import refine_pose
 
     rng = np.random.default_rng(9)
     T_true = se3_exp(_random_twist(rng, 0.1, 0.1))

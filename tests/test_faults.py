@@ -16,12 +16,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.config import load_config
-from onboard.replay import replay
-from onboard.trajectory import read_tum
-from sim_replay.faults import KINDS, FaultItem, inject_faults, parse_spec
+from onboard.app.config import load_config
+from onboard.app.replay import replay
+from onboard.core.trajectory import read_tum
+from sim_replay.fault_plan import KINDS, FaultItem, parse_spec
+from sim_replay.faults import inject_faults
 from sim_replay.sim import sim_options, simulate
-from sim_replay.tum import open_sequence, read_file_list
+from sim_replay.tum import open_sequence
+from sim_replay.tum_files import read_file_list
 
 SPEC_ALL = ("drop:2,dup:2,swap:1,truncate:2,corrupt:1,zero-depth:2,att-gap:0.4,att-nan:2,"
             "att-spike:2,clock-jump:1.5")
@@ -227,7 +229,7 @@ def test_replay_of_a_damaged_flight(clean, clean_counts, tmp_path, monkeypatch, 
     src_counts = clean_counts
     # The plot costs more than tracking these 75 frames and proves nothing
     # here; a coarser grid keeps the eleven replays quick.
-    monkeypatch.setattr("onboard.replay.plot_trajectory", lambda *a, **k: False)
+    monkeypatch.setattr("onboard.app.replay.plot_trajectory", lambda *a, **k: False)
     cfg = load_config(None, {"nislam.grid_width": 240, "nislam.grid_height": 180})
     result = replay(dst, cfg, tmp_path / "out", progress=False)
     m = result.metrics
@@ -265,7 +267,7 @@ def test_replay_of_a_damaged_flight(clean, clean_counts, tmp_path, monkeypatch, 
 
 
 def test_reader_rules_for_stamps_and_attitude_samples(tmp_path):
-    from sim_replay.tum import drop_stale_entries, read_attitude_file, stream_gaps
+    from sim_replay.tum_files import drop_stale_entries, read_attitude_file, stream_gaps
 
     rows = [(1.0, "a"), (2.0, "b"), (2.0, "b"), (4.0, "d"), (3.0, "c"), (5.0, "e")]
     kept, dup, ooo = drop_stale_entries(rows)

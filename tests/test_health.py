@@ -1,4 +1,4 @@
-"""The onboard health state machine (onboard/health.py), step by step."""
+"""The onboard health state machine (onboard/app/health.py), step by step."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import dataclasses
 
 from fake_results import track_result
 
-from onboard.frames import TrackState
-from onboard.health import Health, HealthMonitor, HealthThresholds
+from onboard.app.health import HealthMonitor, HealthThresholds
+from onboard.core.messages import Health, TrackState
 
 TH = HealthThresholds(frame_timeout_s=0.5, degraded_gap_s=0.2, degraded_quality=20,
                       start_grace_s=10.0, recover_s=0.0)  # no dwell: each rule on its own

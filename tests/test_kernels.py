@@ -1,4 +1,4 @@
-"""The compiled kernels (onboard/kernels.py) against plain numpy / OpenCV
+"""The compiled kernels (onboard/nislam/kernels.py) against plain numpy / OpenCV
 statements of what they compute, on random data where a slip in an index, a
 gate or a tie rule shows."""
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from onboard import kernels as kern
+from onboard.nislam import kernels as kern
 
 RNG = np.random.default_rng(5)
 

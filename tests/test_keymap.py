@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.keymap import KeyframeMap
+from onboard.nislam.keymap import KeyframeMap
 
 
 @dataclass

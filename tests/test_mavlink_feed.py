@@ -13,20 +13,13 @@ from fake_results import POSE_VAR, track_result
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.frames import TrackState
-from onboard.mavlink_out import (
-    R_B_C_DOWN,
-    R_B_C_FORWARD,
-    FeedState,
-    VisionFeed,
-    diag_cov21,
-    euler_rpy,
-    mount_rotation,
-    q_wxyz,
-)
+from onboard.core.messages import TrackState
+from onboard.core.rotations import MOUNT_R_B_C, mount_rotation
+from onboard.outputs.mavlink_feed import FeedState, VisionFeed, diag_cov21, euler_rpy, q_wxyz
 
 DT = 1.0 / 30.0
 S = math.sqrt(0.5)
+R_B_C_FORWARD, R_B_C_DOWN = MOUNT_R_B_C["forward"], MOUNT_R_B_C["down"]
 
 
 def rz(deg: float) -> np.ndarray:
@@ -189,11 +182,11 @@ def test_importing_the_outputs_has_no_side_effects() -> None:
     """pymavlink, zenoh and MAVLINK20 stay untouched until an output is built."""
     code = (
         "import os, sys\n"
-        "import onboard.outputs, onboard.mavlink_out, onboard.mapcodec, onboard.cli\n"
+        "import onboard.outputs.group, onboard.outputs.mavlink, onboard.outputs.mapcodec, onboard.app.cli\n"
         "assert 'pymavlink' not in sys.modules, 'pymavlink imported'\n"
         "assert 'zenoh' not in sys.modules, 'zenoh imported'\n"
         "assert 'MAVLINK20' not in os.environ\n"
-        "from onboard.mavlink_out import load_mavutil\n"
+        "from onboard.outputs.mavlink import load_mavutil\n"
         "m = load_mavutil()\n"
         "assert os.environ['MAVLINK20'] == '1' and m.mavlink.WIRE_PROTOCOL_VERSION == '2.0'\n"
         "assert hasattr(m.mavlink.MAVLink, 'odometry_send')\n"
@@ -205,6 +198,6 @@ def test_importing_the_outputs_has_no_side_effects() -> None:
 
     refused = subprocess.run(
         [sys.executable, "-c", "from pymavlink import mavutil\n"
-         "from onboard.mavlink_out import load_mavutil\nload_mavutil()"],
+         "from onboard.outputs.mavlink import load_mavutil\nload_mavutil()"],
         env=env, capture_output=True, text=True, timeout=120)
     assert refused.returncode != 0 and "MAVLink 1" in refused.stderr

@@ -18,8 +18,8 @@ import pytest
 from fake_results import track_result
 from subproc import JsonLinesProcess, free_port
 
-from onboard.config import MavlinkConfig
-from onboard.mavlink_out import MavlinkOutput, load_mavutil
+from onboard.outputs.mavlink import MavlinkOutput, load_mavutil
+from onboard.outputs.settings import MavlinkConfig
 
 MAVPROXY = Path(sys.executable).parent / "mavproxy.py"
 N = 30

@@ -15,16 +15,17 @@ from fake_results import POSE_VAR, track_result
 from scipy.spatial.transform import Rotation
 from subproc import REPO, JsonLinesProcess, free_port, python_script
 
-from onboard.config import MavlinkConfig
-from onboard.frames import TrackState
-from onboard.mavlink_out import R_B_C_FORWARD, MavlinkOutput
+from onboard.core.messages import TrackState
+from onboard.core.rotations import MOUNT_R_B_C
+from onboard.outputs.mavlink import MavlinkOutput
+from onboard.outputs.settings import MavlinkConfig
 
 PEER = REPO / "tests" / "mavlink_peer.py"
 WAIT_S = 60.0
 DT = 1.0 / 30.0
 T0 = 1000.0
 S = math.sqrt(0.5)
-R_W_C = Rotation.from_euler("z", 90, degrees=True).as_matrix() @ R_B_C_FORWARD  # nose east
+R_W_C = Rotation.from_euler("z", 90, degrees=True).as_matrix() @ MOUNT_R_B_C["forward"]  # nose east
 F32 = dict(rel=1e-6, abs=1e-9)
 
 
@@ -244,7 +245,7 @@ def test_heartbeat_at_the_configured_rate_and_stale_feed_lost() -> None:
 def test_tcp_link_that_goes_away_is_reopened(caplog: pytest.LogCaptureFixture) -> None:
     """No peer at first (errors counted, logged once), then a peer, then it
     goes away and comes back: the feed resumes each time, publish never waits."""
-    caplog.set_level(logging.WARNING, logger="onboard.mavlink_out")
+    caplog.set_level(logging.WARNING, logger="onboard.outputs.mavlink")
     port = free_port(socket.SOCK_STREAM)
     out = MavlinkOutput(MavlinkConfig(connect=f"tcp:127.0.0.1:{port}", reconnect_s=0.1,
                                       stale_s=30.0))
@@ -303,7 +304,7 @@ class BlockingConnect:
 def test_publish_never_waits_for_the_link(monkeypatch: pytest.MonkeyPatch) -> None:
     """publish() returns while the sender thread is stuck opening the link:
     the loop never waits on a socket or a serial port."""
-    import onboard.mavlink_out as mavlink_out
+    import onboard.outputs.mavlink as mavlink_out
 
     fake = BlockingConnect(mavlink_out.load_mavutil())
     monkeypatch.setattr(mavlink_out, "load_mavutil", lambda: fake)

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from drivers.attitude import AttitudeBuffer
 from drivers.myahrs import MyAhrsDriver, MyAhrsParser, checksum, command, startup_commands
+from onboard.core.attitude import AttitudeBuffer
 
 DEVICE = Path(__file__).resolve().parent / "peers" / "myahrs_device.py"
 WAIT_S = 60.0  # generous: a busy 2-core CI machine

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.frames import CameraIntrinsics, RgbdFrame
-from onboard.frames import TrackState
-from onboard.nislam import NislamParams, NislamTracker
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.messages import RgbdFrame, TrackState
+from onboard.nislam.params import NislamParams
+from onboard.nislam.tracker import NislamTracker
 
 # A 320 x 240 camera with the field of view of a 640 x 480 one at fx = 500;
 # every pixel is used (pixel_stride 1), as every 2nd of a VGA image would be.

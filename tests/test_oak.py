@@ -21,9 +21,9 @@ os.environ["DEPTHAI_PROTOCOL"] = "usb"  # before depthai is imported: no network
 
 import numpy as np
 import pytest
+from peers.fake_depthai import API_NAMES, FakeDai, Platform
 from scipy.spatial.transform import Rotation
 
-from drivers.attitude import R_NED_ENU, AttitudeBuffer
 from drivers.oak import (
     DEPTH_SCALE_MM,
     OakDriver,
@@ -33,7 +33,8 @@ from drivers.oak import (
     frame_from_group,
     open_oak,
 )
-from peers.fake_depthai import API_NAMES, FakeDai, Platform
+from onboard.core.attitude import AttitudeBuffer
+from onboard.core.rotations import R_NED_ENU
 
 WAIT_S = 60.0
 

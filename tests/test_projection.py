@@ -1,7 +1,7 @@
 """Axonometric projection of RGB-D clouds (NI-SLAM Sec. IV-A) and the adaptive
 cell size (authors' adapt_field_of_view, reference-nislam.md §3).
 
-Cell convention under test (onboard/projection.py): cell u covers
+Cell convention under test (onboard/nislam/projection.py): cell u covers
 x' in [(u - W//2) res, (u + 1 - W//2) res) (floor), likewise v; p' = R p.
 """
 
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.correlation import KernelCorrelationFilter, find_peak
-from onboard.frames import CameraIntrinsics
-from onboard.projection import Cloud, adaptive_resolution, make_cloud, project
+from onboard.core.camera import CameraIntrinsics
+from onboard.nislam.correlation import KernelCorrelationFilter, find_peak
+from onboard.nislam.projection import Cloud, adaptive_resolution, make_cloud, project
 
 INTR = CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480)
 MIN_D, MAX_D = 0.2, 6.0
@@ -84,7 +84,7 @@ def _render_plane(texture, cam_x: float, cam_y: float):
     return bgr, np.full((INTR.height, INTR.width), PLANE_Z, np.float32)
 
 
-def _overlap(img, du, dv):
+def overlap(img, du, dv):
     """(key part, current part) with current[v + dv, u + du] against key[v, u]."""
     h, w = img.shape
     return (
@@ -117,12 +117,12 @@ def test_lateral_translation_shifts_axonometric_image_by_exact_cells(texture):
     cur = project(make_cloud(cur_bgr, cur_depth, INTR, MIN_D, MAX_D), np.eye(3), SHAPE, RES)
     du, dv = round(-T_CAM[0] / RES), round(-T_CAM[1] / RES)
     assert (du, dv) == (-6, 3)
-    ks, cs = _overlap(key.gray, du, dv)
+    ks, cs = overlap(key.gray, du, dv)
     assert key.gray[ks].size > 0.9 * key.gray.size
     np.testing.assert_array_equal(cur.gray[cs], key.gray[ks])
     np.testing.assert_array_equal(cur.depth_m[cs], key.depth_m[ks])
     # ... and not by a neighbouring shift (the texture is random per cell)
-    ks1, cs1 = _overlap(key.gray, du + 1, dv)
+    ks1, cs1 = overlap(key.gray, du + 1, dv)
     assert np.mean(cur.gray[cs1] == key.gray[ks1]) < 0.1
 
     # The correlation filter sees the same shift (content moved left/down).

@@ -11,14 +11,10 @@ import numpy as np
 import pytest
 
 from onboard import NislamError
-from onboard.frames import CameraIntrinsics, RgbdFrame
-from sim_replay.tum import (
-    CameraModel,
-    associate,
-    load_camera,
-    open_sequence,
-    read_file_list,
-)
+from onboard.core.camera import CameraIntrinsics, CameraModel
+from onboard.core.messages import RgbdFrame
+from sim_replay.tum import open_sequence
+from sim_replay.tum_files import associate, load_camera, read_file_list
 
 FR1_K = np.array([[517.3, 0.0, 318.6], [0.0, 516.5, 255.3], [0.0, 0.0, 1.0]])
 FR1_DIST = np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633])

@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.attitude import AttitudeBuffer
-from drivers.camera import FrameSlot
-from drivers.recorder import SequenceWriter, record
 from onboard import NislamError
-from onboard.config import load_config
-from onboard.frames import RgbdFrame
+from onboard.app.config import load_config
+from onboard.app.record import SequenceWriter, record
+from onboard.core.attitude import AttitudeBuffer
+from onboard.core.camera import CameraModel
+from onboard.core.messages import RgbdFrame
+from onboard.core.sources import FrameSlot
 from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
 from sim_replay.sources import (
     FRAME_DELIVERY_S,
@@ -32,7 +33,7 @@ from sim_replay.sources import (
     ReplayClock,
     open_replay,
 )
-from sim_replay.tum import CameraModel, open_sequence
+from sim_replay.tum import open_sequence
 
 os.environ["DEPTHAI_PROTOCOL"] = "usb"
 
@@ -345,7 +346,7 @@ def test_recording_takes_a_frame_that_comes_as_the_replay_ends(
 
 def run_record(args: list[str], **kw) -> subprocess.Popen:
     """`nislam record` as a subprocess (stdout and stderr piped, text)."""
-    return subprocess.Popen([sys.executable, "-m", "onboard.cli", "record", *args],
+    return subprocess.Popen([sys.executable, "-m", "onboard.app.cli", "record", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
@@ -438,9 +439,10 @@ def test_recording_from_stand_in_hardware(tmp_path: Path) -> None:
     simulated myAHRS+ process behind a pty, both through make_hardware. It
     records until the files hold 10 frames inside the attitude's span and 50
     attitude samples, however long a busy machine takes, then is stopped."""
-    from drivers.hardware import make_hardware
     from peers.fake_depthai import FakeDai
     from test_myahrs import DeviceProcess
+
+    from onboard.app.hardware import make_hardware
 
     link = tmp_path / "myahrs"
     out = tmp_path / "rec"

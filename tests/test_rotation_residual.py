@@ -1,5 +1,5 @@
 """The residual-rotation measurement behind the attitude time-offset
-calibration (onboard/nislam.py, _RotationResidual), on two rendered views of
+calibration (onboard/nislam/calibration.py, RotationResidual), on two rendered views of
 the synthetic room 19 cm and 7.7 deg apart along the orbit: boxes in front of
 walls, so near objects hide different parts of the walls in the two views."""
 
@@ -9,14 +9,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.correlation import KernelCorrelationFilter, find_peak
-from onboard.frames import CameraIntrinsics
-from onboard.nislam import NislamParams, _OffsetCalibration, _RotationResidual, _whiten
-from onboard.projection import make_cloud, project
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.rotations import mount_rotation
+from onboard.nislam.calibration import OffsetCalibration, RotationResidual
+from onboard.nislam.correlation import KernelCorrelationFilter, find_peak, whiten
+from onboard.nislam.params import NislamParams
+from onboard.nislam.projection import make_cloud, project
 from sim_replay.flights import Flight, scenario
 from sim_replay.render import Renderer
 from sim_replay.scene import make_scene
-from sim_replay.sensors import mount_rotation
 
 INTR = CameraIntrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
 SHAPE, RES_M = (360, 480), 0.008
@@ -47,11 +48,11 @@ def _measure(views, err_rotvec):
     key_cloud, cur_cloud, r_rel, t_key = views
     key_img = project(key_cloud, np.eye(3), SHAPE, RES_M)
     filt = KernelCorrelationFilter(SHAPE, P.kernel_sigma, P.lam, P.label_sigma_cells)
-    filt.train(_whiten(key_img))
-    residual = _RotationResidual.train(key_img, P)
+    filt.train(whiten(key_img.gray, key_img.mask))
+    residual = RotationResidual.train(key_img, P)
     assert residual is not None  # the room has depth relief
     img = project(cur_cloud, r_rel @ Rotation.from_rotvec(err_rotvec).as_matrix(), SHAPE, RES_M)
-    peak = find_peak(filt.response(_whiten(img)), P.psr_exclude_cells)
+    peak = find_peak(filt.response(whiten(img.gray, img.mask)), P.psr_exclude_cells)
     assert abs(peak.du_cells + t_key[0] / RES_M) < 3  # the views are matched
     theta = residual.residual(img, (peak.du_cells, peak.dv_cells), t_key[2], P)
     assert theta is not None and theta[2] == 0.0
@@ -85,7 +86,7 @@ def test_offset_calibration_is_unbiased_on_noise_free_residuals():
     # directions: the estimate reaches the truth from 0 whatever kappa in 0.77..1.3.
     rng = np.random.default_rng(1)
     for kappa in (0.77, 1.3):
-        calib = _OffsetCalibration(P.time_offset_forget, P.time_offset_max_s, 0.0)
+        calib = OffsetCalibration(P.time_offset_forget, P.time_offset_max_s, 0.0)
         for _ in range(300):
             g = rng.normal(0.0, 0.6, 2)
             calib.update(g, kappa * (calib.offset_s + 0.021) * g)

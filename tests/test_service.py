@@ -17,13 +17,15 @@ import pytest
 import zenoh
 from subproc import REPO, JsonLinesProcess, free_port, python_script
 
-from onboard.config import ZenohConfig, load_config
-from onboard.evaluation import umeyama_se3
-from onboard.frames import CameraIntrinsics
-from onboard.sdnotify import Notifier
-from onboard.service import Service, replay_sources
-from onboard.trackers import make_tracker
-from onboard.zenoh_out import session_config
+from onboard.app.config import load_config
+from onboard.app.sdnotify import Notifier
+from onboard.app.service import Service
+from onboard.app.sources import replay_sources
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.evaluation import umeyama_se3
+from onboard.fusion.registry import make_tracker
+from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.zenoh_out import session_config
 from sim_replay.faults import inject_faults
 from sim_replay.sim import SimOptions, simulate
 from sim_replay.tum import open_sequence
@@ -352,7 +354,7 @@ def test_service_on_stand_in_hardware(tmp_path: Path) -> None:
     from peers.fake_depthai import FakeDai
     from test_myahrs import DeviceProcess
 
-    from onboard.service import hardware_sources
+    from onboard.app.sources import hardware_sources
 
     link = tmp_path / "myahrs"
     dev = DeviceProcess(link)

@@ -13,11 +13,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
+from onboard.core.rotations import mount_rotation
 from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
 from sim_replay.flights import Flight, scenario
 from sim_replay.render import Renderer
 from sim_replay.scene import make_scene
-from sim_replay.sensors import mount_rotation
 from sim_replay.sim import SIM_MANIFEST, SimOptions, sim_options, simulate
 from sim_replay.tum import open_sequence
 

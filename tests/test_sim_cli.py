@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from sim_replay.faults import KINDS
+from sim_replay.fault_plan import KINDS
 from sim_replay.flights import SCENARIOS
 from sim_replay.sim import SIM_MANIFEST
 
@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 def nislam(*args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-    return subprocess.run([sys.executable, "-m", "onboard.cli", *args], cwd=REPO, env=env,
+    return subprocess.run([sys.executable, "-m", "onboard.app.cli", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -41,7 +41,6 @@ def test_sim_then_faults_end_to_end(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "dropped_frames +2" in proc.stdout and "attitude_nan_samples +1" in proc.stdout
     assert json.loads((bad / "faults.json").read_text())["spec"] == "drop:2,att-nan:1"
-
 
 
 def test_errors_are_one_line_and_exit_1(tmp_path):

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.frames import CameraIntrinsics
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.rotations import mount_rotation
 from sim_replay.flights import Flight, scenario
 from sim_replay.render import NEAR_M, Renderer
 from sim_replay.scene import Scene, make_scene, plane_scene
-from sim_replay.sensors import mount_rotation
 from sim_replay.textures import make_texture, mip_levels
 
 INTR = CameraIntrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
+from onboard.core.rotations import mount_rotation
 from sim_replay.attitude import AttitudeErrorModel
 from sim_replay.sensors import (
     AhrsModel,
@@ -20,7 +21,6 @@ from sim_replay.sensors import (
     depth_to_png_units,
     measure_attitude,
     measure_depth,
-    mount_rotation,
 )
 
 

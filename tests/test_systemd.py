@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from subproc import REPO
 
-from onboard.sdnotify import Notifier
+from onboard.app.sdnotify import Notifier
 
 UNIT = REPO / "systemd" / "nislam.service"
 NISLAM = REPO / ".venv" / "bin" / "nislam"

@@ -17,12 +17,12 @@ import zenoh
 from fake_results import keyframe, track_result
 from subproc import REPO, JsonLinesProcess, free_port
 
-from onboard.config import ZenohConfig
-from onboard.frames import KeyframeCloud
-from onboard.listen import MapListener
-from onboard.mapcodec import MapCodecError, MapKeyframe, decode_keyframe, encode_keyframe
-from onboard.ply import read_ply
-from onboard.zenoh_out import ZenohOutput, pose_message, session_config
+from onboard.core.messages import KeyframeCloud
+from onboard.outputs.listen import MapListener
+from onboard.outputs.mapcodec import MapCodecError, MapKeyframe, decode_keyframe, encode_keyframe
+from onboard.outputs.ply import read_ply
+from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.zenoh_out import ZenohOutput, pose_message, session_config
 
 NISLAM = REPO / ".venv" / "bin" / "nislam"
 DT = 1.0 / 30.0
@@ -78,9 +78,9 @@ def test_float64_depth_and_a_real_tracker_key_frame_round_trip(shared_data: Path
                          kf.depth_m.astype(np.float64), kf.gray, kf.bgr)
     assert same_bits(decode_keyframe(encode_keyframe(kf64)).points()[0], kf64.points()[0])
 
-    from onboard.config import Config
-    from onboard.replay import track_sequence
-    from onboard.trackers import make_tracker
+    from onboard.app.config import Config
+    from onboard.app.replay import track_sequence
+    from onboard.fusion.registry import make_tracker
     from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
     from sim_replay.tum import open_sequence
 

@@ -15,8 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from onboard.config import Config
-from onboard.trackers import make_tracker
+from onboard.app.config import Config
+from onboard.fusion.registry import make_tracker
 from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
 from sim_replay.tum import open_sequence
 
@@ -27,7 +27,7 @@ def pin_one_core() -> None:
     """Keep OpenCV on the calling thread. The tracker must fit one core of the
     companion computer (drivers and outputs share the others), so timings
     measured with OpenCV's thread pool would promise speed the drone lacks.
-    scipy.fft is already called with workers=1 in onboard.correlation."""
+    scipy.fft is already called with workers=1 in onboard.nislam.correlation."""
     cv2.setNumThreads(1)
 
 

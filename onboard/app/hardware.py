@@ -8,22 +8,20 @@ that reads the config sections ([ahrs], [myahrs], [autopilot], [oak] and the
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from .attitude import AttitudeBuffer, Quat, matrix_to_quat, mount_rotation
-from .autopilot_attitude import AutopilotAttitude
-from .base import DriverThread
-from .fc_link import FcLink
-from .myahrs import MyAhrsDriver
-from .oak import OakDriver, OakSettings, import_depthai
+from drivers.autopilot_attitude import AutopilotAttitude
+from drivers.fc_link import FcLink
+from drivers.myahrs import MyAhrsDriver
+from drivers.oak import OakDriver, OakSettings, import_depthai
+from onboard.core.attitude import AttitudeBuffer
+from onboard.core.rotations import Quat, matrix_to_quat, mount_rotation
+from onboard.core.sources import DriverThread
 
 if TYPE_CHECKING:
-    from onboard.config import Config
-
-log = logging.getLogger(__name__)
+    from onboard.app.config import Config
 
 
 def camera_mount_q(cfg: Config) -> Quat:

@@ -21,26 +21,11 @@ The MAVLink heartbeat (system_status) and the zenoh status carry the state.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
-from onboard.frames import TrackResult
+from onboard.core.messages import Health, HealthReport, TrackResult
 
 QUALITY_HYSTERESIS = 5  # as the MAVLink feed's DEGRADED <-> ACTIVE
-
-
-class Health(enum.Enum):
-    STARTING = "starting"
-    TRACKING = "tracking"
-    DEGRADED = "degraded"
-    LOST = "lost"
-
-
-@dataclass(frozen=True)
-class HealthReport:
-    state: Health
-    reason: str  # one line: why this state (shown in STATUSTEXT and zenoh status)
-    changed: bool = False  # differs from the previous report's state
 
 
 @dataclass(frozen=True)

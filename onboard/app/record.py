@@ -36,16 +36,14 @@ import cv2
 import numpy as np
 
 from onboard import NislamError
-from onboard.frames import RgbdFrame
-
-from .attitude import AttitudeBuffer, AttitudeSample
+from onboard.core.attitude import AttitudeBuffer, AttitudeSample
+from onboard.core.messages import RgbdFrame
 
 if TYPE_CHECKING:
-    from onboard.config import Config
+    from onboard.app.config import Config
+    from onboard.app.hardware import Hardware
+    from onboard.core.camera import CameraModel
     from sim_replay.sources import ReplayCamera
-    from sim_replay.tum import CameraModel
-
-    from .hardware import Hardware
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +235,7 @@ def record(
 
     Sources: the replay drivers for `replay_dir`, played at `replay_speed`
     (1 = real time; slower leaves a busy machine more time per frame); else
-    `hardware` (built by drivers.hardware.make_hardware from `cfg` when None)."""
+    `hardware` (built by onboard.app.hardware.make_hardware from `cfg` when None)."""
     stop = stop or threading.Event()
     out_dir = Path(out_dir)
     replay_camera: ReplayCamera | None = None  # counts the frames it skipped as late
@@ -254,7 +252,7 @@ def record(
         replay_camera = rp.camera
         tail_timeout_s = REPLAY_TAIL_TIMEOUT_S / min(1.0, replay_speed)
     else:
-        from .hardware import make_hardware
+        from onboard.app.hardware import make_hardware
 
         hw = hardware or make_hardware(cfg, camera=True)
         if hw.camera is None:

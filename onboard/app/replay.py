@@ -22,13 +22,14 @@ import numpy as np
 from tqdm import tqdm
 
 from onboard import NislamError
-from onboard.bench import attitude_error_model, frame_time_stats, pin_one_core
-from onboard.config import Config, config_to_toml
-from onboard.evaluation import TrajectoryMetrics, evaluate, ground_truth_at, plot_trajectory
-from onboard.frames import AttitudeSource, KeyframeCloud
-from onboard.ply import write_ply
-from onboard.trackers import Tracker, make_tracker
-from onboard.trajectory import Trajectory, write_tum
+from onboard.app.bench import attitude_error_model, frame_time_stats, pin_one_core
+from onboard.app.config import Config, config_to_toml
+from onboard.core.evaluation import TrajectoryMetrics, evaluate, ground_truth_at
+from onboard.core.messages import AttitudeSource, KeyframeCloud, Tracker
+from onboard.core.trajectory import Trajectory, write_tum
+from onboard.fusion.registry import make_tracker
+from onboard.outputs.plot import plot_trajectory
+from onboard.outputs.ply import write_ply
 from sim_replay.attitude import attitude_for_replay
 from sim_replay.tum import Sequence, open_sequence
 

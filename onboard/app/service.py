@@ -10,7 +10,7 @@ the outputs' senders; nothing here blocks on a device or a socket for longer
 than `[service] poll_s`, so a missing camera shows as lost and a hung loop
 stops the watchdog pings (systemd then restarts us).
 
-Sources: the hardware of the config (drivers.hardware), or a recorded or
+Sources: the hardware of the config (onboard.app.hardware), or a recorded or
 synthetic sequence replayed at its own pace through the same interfaces
 (sim_replay.sources). With ground truth (replays) the trusted poses are
 scored at the end (ATE after SE(3) alignment) and written like `nislam
@@ -22,30 +22,21 @@ last key frame goes to the map, the outputs flush, devices close.
 
 from __future__ import annotations
 
-import collections
-import dataclasses
 import json
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from drivers.attitude import AttitudeBuffer
-from drivers.camera import CameraSource
-from onboard import kernels
-from onboard.bench import pin_one_core
-from onboard.config import Config, config_to_toml
-from onboard.fallback import SwitchingTracker
-from onboard.frames import CameraIntrinsics, TrackResult
-from onboard.health import Health, HealthMonitor, HealthReport, HealthThresholds
-from onboard.outputs import Output, make_outputs
-from onboard.replay import (
+from onboard.app.bench import pin_one_core
+from onboard.app.config import Config, config_to_toml
+from onboard.app.health import HealthMonitor, HealthThresholds
+from onboard.app.loop_stats import LoopStats, RunResult, jsonable, stats_line
+from onboard.app.replay import (
     CONFIG_FILE,
     METRICS_FILE,
     TRAJECTORY_FILE,
@@ -54,9 +45,15 @@ from onboard.replay import (
     write_text_atomic,
     write_trajectories,
 )
-from onboard.sdnotify import Notifier
-from onboard.trackers import Tracker, make_tracker
-from onboard.trajectory import write_tum
+from onboard.app.sdnotify import Notifier
+from onboard.app.sources import Sources
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.messages import Health, HealthReport, Tracker, TrackResult
+from onboard.core.trajectory import write_tum
+from onboard.fusion.registry import make_tracker
+from onboard.fusion.switching import SwitchingTracker
+from onboard.nislam import kernels
+from onboard.outputs.group import Output, make_outputs
 
 log = logging.getLogger(__name__)
 
@@ -65,161 +62,7 @@ ATTITUDE_MARGIN_S = 0.005  # beyond the sample needed: interpolation brackets it
 TrackerFactory = Callable[[str, CameraIntrinsics, Config], Tracker]
 
 
-@dataclass
-class Sources:
-    """What the loop reads: a camera, the attitude buffer, and the object that
-    starts and stops their threads (drivers.hardware.Hardware or
-    sim_replay.sources.Replay). `sequence`: the replayed recording (ground
-    truth for the final score), None on hardware."""
-
-    label: str
-    camera: CameraSource
-    attitude: AttitudeBuffer
-    runner: Any  # .start(), .stop(timeout_s) -> bool, .stop_times_s
-    link: Any = None  # drivers.fc_link.FcLink shared with the MAVLink output
-    sequence: Any = None  # sim_replay.tum.Sequence
-    attitude_label: str = ""
-    looped: bool = False  # a replay played back and forth: its poses map to no ground truth
-
-    def start(self) -> None:
-        self.runner.start()
-
-    def stop(self) -> dict[str, float]:
-        self.runner.stop()
-        return dict(self.runner.stop_times_s)
-
-
-def hardware_sources(cfg: Config, **make_kwargs: Any) -> Sources:
-    """The OAK-D and the configured AHRS (drivers.hardware.make_hardware;
-    `make_kwargs` go to it, e.g. a stand-in depthai for tests)."""
-    from drivers.hardware import make_hardware
-
-    hw = make_hardware(cfg, camera=True, **make_kwargs)
-    assert hw.camera is not None
-    return Sources("OAK-D", hw.camera, hw.buffer, hw, link=hw.link,
-                   attitude_label=hw.attitude_label)
-
-
-def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
-                   ) -> tuple[Sources, Config]:
-    """A recording replayed at `[service] replay_speed` through the driver
-    interfaces; with `loop_s`, forwards and backwards in turn for at least
-    that long (then there is no ground truth to score against). The camera
-    mount comes from the recording (one source of truth for R_B_C): the
-    config's [mavlink] mount is set to it."""
-    from drivers.attitude import matrix_to_quat
-    from sim_replay.sources import open_replay
-
-    rp = open_replay(seq_dir, speed=cfg.service.replay_speed,
-                     buffer_capacity=cfg.ahrs.buffer_samples, max_gap_s=cfg.ahrs.max_gap_s,
-                     assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort,
-                     loop_s=loop_s)
-    passes = rp.passes
-    q = matrix_to_quat(rp.buffer.R_B_C)
-    mav = dataclasses.replace(cfg.mavlink, mount="custom", mount_q_B_C_xyzw=tuple(q))
-    cfg = dataclasses.replace(cfg, mavlink=mav)
-    label = f"replay of {rp.seq.path}" + (f" ({passes} passes)" if passes > 1 else "")
-    return Sources(label, rp.camera, rp.buffer, rp, sequence=rp.seq if passes == 1 else None,
-                   attitude_label=rp.attitude_label, looped=passes > 1), cfg
-
-
 # --------------------------------------------------------------------------- statistics
-
-
-class MsHistogram:
-    """Per-frame times in fixed 0.05 ms bins up to 2 s: percentiles of a run
-    of any length in constant memory (a service runs for hours)."""
-
-    BIN_MS = 0.05
-    MAX_MS = 2000.0
-
-    def __init__(self) -> None:
-        self.counts = np.zeros(int(self.MAX_MS / self.BIN_MS) + 1, dtype=np.int64)
-        self.n = 0
-        self.max_ms = 0.0
-
-    def add(self, ms: float) -> None:
-        self.counts[min(int(ms / self.BIN_MS), len(self.counts) - 1)] += 1
-        self.n += 1
-        self.max_ms = max(self.max_ms, ms)
-
-    def percentile(self, q: float) -> float | None:
-        """The q-th percentile to a bin's width (bin centres); None when empty."""
-        if self.n == 0:
-            return None
-        rank = q / 100.0 * (self.n - 1)
-        i = int(np.searchsorted(np.cumsum(self.counts), rank + 1))
-        return min((i + 0.5) * self.BIN_MS, self.max_ms)
-
-    def stats(self) -> dict[str, float | None]:
-        median = self.percentile(50)
-        return {
-            "frame_ms_median": median,
-            "frame_ms_p95": self.percentile(95),
-            "frame_ms_p99": self.percentile(99),
-            "frame_ms_max": self.max_ms if self.n else None,
-        }
-
-
-@dataclass
-class LoopStats:
-    """Counters of the loop; per-frame times of the run (histogram) and of the
-    current statistics period. Memory stays constant however long it runs."""
-
-    frames: int = 0
-    tracked: int = 0
-    keyframes: int = 0
-    resets: int = 0
-    loop_turns: int = 0
-    idle_turns: int = 0
-    frame_ms: MsHistogram = field(default_factory=MsHistogram)  # track + publish
-    period_ms: list[float] = field(default_factory=list)
-    period_frames: int = 0
-    period_start_s: float = 0.0
-    last_psr: float = float("nan")
-    period_att_lead_ms: float = float("inf")  # least AHRS lead over a frame this period
-    lost_reasons: collections.Counter = field(default_factory=collections.Counter)
-    health_changes: int = 0
-    periods: deque[dict[str, Any]] = field(  # one per stats line, the last hour at 5 s
-        default_factory=lambda: deque(maxlen=720))
-
-
-@dataclass
-class RunResult:
-    metrics: dict[str, Any]
-    out_dir: Path | None
-
-    def summary_lines(self) -> list[str]:
-        m = self.metrics
-        lines = [
-            f"source      {m['source']}  (tracker {m['tracker']}"
-            f"{', fallback ' + m['fallback_tracker'] if m['fallback_tracker'] else ''})",
-            f"ran         {m['seconds']:.1f} s, {m['frames']} frames tracked at "
-            f"{m['frame_hz']:.1f} Hz, dropped {m['frames_dropped']}",
-            f"tracked     {m['frames_tracked']} trusted, {m['frames'] - m['frames_tracked']} "
-            f"untrusted; key frames {m['keyframes']}; resets {m['reset_counter']}; "
-            f"tracker switches {m['tracker_switches']}",
-            f"per frame   median {_ms(m['frame_ms_median'])}, p95 {_ms(m['frame_ms_p95'])}, "
-            f"max {_ms(m['frame_ms_max'])} (track + publish)",
-            f"health      {m['health']} at the end; {m['health_changes']} changes",
-        ]
-        if m.get("ate_rmse_m") is not None:
-            lines.append(f"ATE RMSE    {m['ate_rmse_m']:.4f} m over {m['frames_evaluated']} "
-                         f"frames (SE(3)-aligned); RPE {_rpe(m)}")
-        elif m.get("evaluation_note"):
-            lines.append(f"ATE         not computed: {m['evaluation_note']}")
-        if self.out_dir is not None:
-            lines.append(f"output      {self.out_dir}")
-        return lines
-
-
-def _ms(v: float | None) -> str:
-    return "n/a" if v is None else f"{v:.1f} ms"
-
-
-def _rpe(m: dict[str, Any]) -> str:
-    v = m.get("rpe_trans_rmse_m")
-    return "n/a" if v is None else f"{v:.4f} m / {m['rpe_rot_rmse_deg']:.2f} deg (1 s)"
 
 
 # --------------------------------------------------------------------------- the loop
@@ -266,7 +109,7 @@ class Service:
     def run(self) -> RunResult:
         pin_one_core()
         t_start = time.monotonic()
-        outputs = make_outputs(self.cfg, mavlink_link=self.sources.link)
+        outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link)
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop, and compile
         # the tracker's kernels (or load them from numba's cache) before the
@@ -416,7 +259,7 @@ class Service:
             "attitude_lead_ms_min": s.period_att_lead_ms,
         }
         s.periods.append(period)
-        line = _stats_line(period, self.tracker)
+        line = stats_line(period, self.tracker)
         self.emit(line)
         self.notifier.status(line)
         s.period_ms = []
@@ -481,31 +324,7 @@ class Service:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             write_text_atomic(self.out_dir / CONFIG_FILE, config_to_toml(self.cfg))
             write_text_atomic(self.out_dir / METRICS_FILE,
-                              json.dumps(_jsonable(metrics), indent=2, allow_nan=False) + "\n")
+                              json.dumps(jsonable(metrics), indent=2, allow_nan=False) + "\n")
         return RunResult(metrics, self.out_dir)
 
 
-def _stats_line(p: dict[str, Any], tracker: SwitchingTracker | None) -> str:
-    name = "-" if tracker is None else tracker.active_name
-    ms = "n/a" if p["ms_median"] is None else f"{p['ms_median']:.1f} ms (p95 {p['ms_p95']:.1f})"
-    psr = "n/a" if not np.isfinite(p["psr"]) else f"{p['psr']:.0f}"
-    return (f"{p['health']:<8} {p['hz']:5.1f} Hz  {ms}  dropped {p['dropped']}  "
-            f"PSR {psr}  key frames {p['keyframes']}  resets {p['resets']}  "
-            f"offset {p['attitude_offset_ms']:+.0f} ms  AHRS lead {_lead(p)}  [{name}]")
-
-
-def _lead(p: dict[str, Any]) -> str:
-    lead = p["attitude_lead_ms_min"]
-    return "n/a" if not np.isfinite(lead) else f"{lead:+.0f} ms"
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {k: _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (float, np.floating)):
-        return float(v) if np.isfinite(v) else None
-    if isinstance(v, np.integer):
-        return int(v)
-    return v

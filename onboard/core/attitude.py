@@ -4,7 +4,7 @@ Drivers turn what their sensor reports (the AHRS axes A in the sensor's world)
 into `AttitudeSample`s of the vehicle body B in the AHRS world W (gravity
 aligned, z down) with `to_body_sample`, using the AHRS-to-body rotation from
 config, and push them into an `AttitudeBuffer`. The buffer implements
-`onboard.frames.AttitudeSource`: `rotation_at(t_s)` slerps between the two
+`onboard.core.messages.AttitudeSource`: `rotation_at(t_s)` slerps between the two
 samples around `t_s` and returns R_W_C = R_W_B(t) R_B_C with the camera
 mount, or None ("no attitude") when the query lies outside the buffered span
 or the two samples around it are further apart than `max_gap_s` (an outage).
@@ -20,26 +20,19 @@ replay). `rotation_at` takes seconds on the same clock, as RgbdFrame.t_s.
 from __future__ import annotations
 
 import bisect
-import math
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-Quat = tuple[float, float, float, float]
-
-IDENTITY_Q_XYZW: Quat = (0.0, 0.0, 0.0, 1.0)
-
-# Camera mount presets R_B_C (camera optical -> body FRD), see design.md:
-# forward: camera z = body x, camera x = body y, camera y = body z.
-# down: camera z = body z, image top towards the nose (camera -y = body x).
-MOUNT_R_B_C: dict[str, np.ndarray] = {
-    "forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
-    "down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-}
-
-# R_NED_ENU: East-North-Up world axes into North-East-Down.
-R_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+from onboard.core.rotations import (
+    Quat,
+    quat_conj,
+    quat_mul,
+    quat_normalized,
+    quat_slerp,
+    quat_to_matrix,
+)
 
 
 @dataclass(frozen=True)
@@ -65,68 +58,6 @@ class BufferStats:
 # --------------------------------------------------------------------------- quaternions
 
 
-def quat_mul(a: Quat, b: Quat) -> Quat:
-    """Hamilton product a*b of xyzw quaternions (rotation b first, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-def quat_conj(q: Quat) -> Quat:
-    return (-q[0], -q[1], -q[2], q[3])
-
-
-def quat_normalized(q) -> Quat | None:
-    """Unit xyzw quaternion, or None if non-finite or (near) zero."""
-    x, y, z, w = (float(c) for c in q)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not math.isfinite(n) or n < 1e-6:
-        return None
-    return (x / n, y / n, z / n, w / n)
-
-
-def quat_slerp(q0: Quat, q1: Quat, w: float) -> Quat:
-    x0, y0, z0, w0 = q0
-    x1, y1, z1, w1 = q1
-    dot = x0 * x1 + y0 * y1 + z0 * z1 + w0 * w1
-    if dot < 0.0:  # q and -q are one rotation: take the short way
-        x1, y1, z1, w1, dot = -x1, -y1, -z1, -w1, -dot
-    if dot > 0.9999995:  # under ~0.1 deg apart: normalised lerp is exact enough
-        a, b = 1.0 - w, w
-    else:
-        theta = math.acos(dot)
-        s = math.sin(theta)
-        a, b = math.sin((1.0 - w) * theta) / s, math.sin(w * theta) / s
-    q = (a * x0 + b * x1, a * y0 + b * y1, a * z0 + b * z1, a * w0 + b * w1)
-    n = math.sqrt(sum(c * c for c in q))
-    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-
-
-def quat_to_matrix(q: Quat) -> np.ndarray:
-    x, y, z, w = q
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-    return np.array(
-        [
-            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
-            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
-            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
-        ]
-    )
-
-
-def matrix_to_quat(r: np.ndarray) -> Quat:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(r, dtype=np.float64)).as_quat()
-    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
-
-
 def to_body_sample(t_ns: int, q_W_A_xyzw: Quat, q_B_A_xyzw: Quat) -> AttitudeSample | None:
     """The body's attitude from the AHRS's: R_W_B = R_W_A R_A_B, with R_A_B
     the inverse of the configured AHRS-to-body rotation R_B_A. None when the
@@ -135,18 +66,6 @@ def to_body_sample(t_ns: int, q_W_A_xyzw: Quat, q_B_A_xyzw: Quat) -> AttitudeSam
     if q is None:
         return None
     return AttitudeSample(int(t_ns), quat_mul(q, quat_conj(q_B_A_xyzw)))
-
-
-def mount_rotation(mount: str, q_B_C_xyzw: Quat = IDENTITY_Q_XYZW) -> np.ndarray:
-    """R_B_C for a mount preset, or from `q_B_C_xyzw` when `mount` is "custom"."""
-    if mount in MOUNT_R_B_C:
-        return MOUNT_R_B_C[mount].copy()
-    if mount != "custom":
-        raise ValueError(f"unknown camera mount {mount!r}")
-    q = quat_normalized(q_B_C_xyzw)
-    if q is None:
-        raise ValueError("camera mount quaternion has zero norm")
-    return quat_to_matrix(q)
 
 
 # --------------------------------------------------------------------------- buffer

@@ -13,17 +13,14 @@ Numbers are meant to be identical to `evo` (checked in tests/test_evaluation.py)
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from onboard.trajectory import Trajectory
+from onboard.core.trajectory import Trajectory
 
-logger = logging.getLogger(__name__)
+log = logging.getLogger(__name__)
 
 # TUM files store times with 6 decimals, so a nominal 1.000 s difference can read
 # as 0.999999 s; without this slack the pairing would skip to the next frame.
@@ -55,7 +52,7 @@ def umeyama_se3(src_xyz: np.ndarray, dst_xyz: np.ndarray) -> tuple[np.ndarray, n
     cov = (dst - mean_dst).T @ (src - mean_src) / len(src)
     u, d, vt = np.linalg.svd(cov)
     if np.count_nonzero(d > np.finfo(np.float64).eps) < 2:
-        logger.debug("degenerate covariance in Umeyama alignment (rank < 2)")
+        log.debug("degenerate covariance in Umeyama alignment (rank < 2)")
     s = np.eye(3)
     if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
         s[2, 2] = -1.0
@@ -150,7 +147,7 @@ def rpe_pairs_by_time(t_s: np.ndarray, delta_s: float, all_pairs: bool = True) -
     span_s = t[pairs[:, 1]] - t[pairs[:, 0]]
     keep = span_s <= _RPE_MAX_SPAN_FACTOR * delta_s
     if not keep.all():
-        logger.info(
+        log.info(
             "RPE: dropped %d of %d pairs spanning a data gap (> %.2f s)",
             int((~keep).sum()), len(pairs), _RPE_MAX_SPAN_FACTOR * delta_s,
         )
@@ -179,7 +176,7 @@ def relative_pose_errors(
     return trans_err_m, rot_err_deg
 
 
-def _rmse(x: np.ndarray) -> float:
+def rmse(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
 
@@ -212,16 +209,16 @@ def evaluate(
     pairs = rpe_pairs_by_time(estimate.t_s, rpe_delta_s, all_pairs=rpe_all_pairs)
     rpe_trans_m, rpe_rot_deg = relative_pose_errors(estimate, groundtruth_at_estimate, pairs)
     if len(pairs) == 0:
-        logger.info("RPE: no pair spans %.3f s in %d frames", rpe_delta_s, n)
+        log.info("RPE: no pair spans %.3f s in %d frames", rpe_delta_s, n)
 
     return TrajectoryMetrics(
         frames_evaluated=n,
-        ate_rmse_m=_rmse(ate_m),
+        ate_rmse_m=rmse(ate_m),
         ate_mean_m=float(np.mean(ate_m)),
         ate_median_m=float(np.median(ate_m)),
         ate_max_m=float(np.max(ate_m)),
-        rpe_trans_rmse_m=_rmse(rpe_trans_m),
-        rpe_rot_rmse_deg=_rmse(rpe_rot_deg),
+        rpe_trans_rmse_m=rmse(rpe_trans_m),
+        rpe_rot_rmse_deg=rmse(rpe_rot_deg),
         rpe_delta_s=float(rpe_delta_s),
         rpe_pairs=len(pairs),
         t_s=np.asarray(estimate.t_s, dtype=np.float64),
@@ -234,76 +231,3 @@ def evaluate(
     )
 
 
-_AXIS_NAMES = ("x", "y", "z")
-
-
-def _plot_axes(xyz: np.ndarray) -> tuple[int, int]:
-    """The two axes with the largest extent, in index order: a camera-frame
-    trajectory (y down) is flat in x-z, not x-y."""
-    extent = np.ptp(xyz, axis=0) if len(xyz) else np.zeros(3)
-    a, b = sorted(np.argsort(extent)[-2:].tolist())
-    return int(a), int(b)
-
-
-def plot_trajectory(
-    path_png: Path | str,
-    estimate_aligned_xyz: np.ndarray,
-    gt_xyz: np.ndarray,
-    t_s: np.ndarray,
-    errors_m: np.ndarray,
-    title: str,
-) -> bool:
-    """Top view of the aligned estimate against ground truth plus ATE over time.
-
-    Returns False if matplotlib is not installed (it is an optional extra).
-    """
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")  # headless; no display on the vehicle or in CI
-        from matplotlib.figure import Figure
-    except ImportError:
-        logger.info("matplotlib not importable; skipping plot %s", path_png)
-        return False
-
-    est = np.asarray(estimate_aligned_xyz, dtype=np.float64).reshape(-1, 3)
-    gt = np.asarray(gt_xyz, dtype=np.float64).reshape(-1, 3)
-    t = np.asarray(t_s, dtype=np.float64)
-    err = np.asarray(errors_m, dtype=np.float64)
-    a, b = _plot_axes(gt if len(gt) else est)
-
-    # Figure() without pyplot: no global figure registry, safe off the main thread.
-    fig = Figure(figsize=(8, 10), layout="constrained")
-    ax_top, ax_err = fig.subplots(2, 1, height_ratios=[3, 1])
-    ax_top.plot(gt[:, a], gt[:, b], color="0.3", lw=1.5, label="ground truth")
-    ax_top.plot(est[:, a], est[:, b], color="tab:red", lw=1.0, label="estimate (SE(3)-aligned)")
-    if len(gt):
-        ax_top.plot(gt[0, a], gt[0, b], "o", color="0.3", label="start")
-    ax_top.set_xlabel(f"{_AXIS_NAMES[a]} [m]")
-    ax_top.set_ylabel(f"{_AXIS_NAMES[b]} [m]")
-    ax_top.set_aspect("equal", adjustable="datalim")
-    ax_top.set_title(f"{title}\n{_AXIS_NAMES[a]}-{_AXIS_NAMES[b]} plane")
-    ax_top.legend(loc="best")
-    ax_top.grid(True, alpha=0.3)
-
-    t_rel_s = t - t[0] if len(t) else t
-    ax_err.plot(t_rel_s, err, color="tab:red", lw=1.0)
-    if len(err):
-        rmse_m = _rmse(err)
-        ax_err.axhline(rmse_m, color="k", ls="--", lw=0.8, label=f"RMSE {rmse_m:.3f} m")
-        ax_err.legend(loc="upper left")
-    ax_err.set_xlabel("time [s]")
-    ax_err.set_ylabel("ATE [m]")
-    ax_err.grid(True, alpha=0.3)
-
-    path = Path(path_png)
-    # Temp file then rename so a watcher never picks up a half-written PNG.
-    fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format="png", dpi=110)
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
-    return True

@@ -16,18 +16,6 @@ from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics of an undistorted image, in pixels."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-
-@dataclass(frozen=True)
 class RgbdFrame:
     """One colour + registered depth pair, already undistorted.
 
@@ -119,3 +107,31 @@ class TrackResult:
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:
         return None if self.R_W_C is None else Rotation.from_matrix(self.R_W_C).as_quat()
+
+
+class Tracker(Protocol):
+    """One camera's tracking front end."""
+
+    name: str
+
+    def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
+        """Track one frame; attitude is looked up at the frame's capture time."""
+        ...
+
+    def finish(self) -> KeyframeCloud | None:
+        """End of a run: the current key's cloud for the map, if any."""
+        ...
+
+
+class Health(enum.Enum):
+    STARTING = "starting"
+    TRACKING = "tracking"
+    DEGRADED = "degraded"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class HealthReport:
+    state: Health
+    reason: str  # one line: why this state (shown in STATUSTEXT and zenoh status)
+    changed: bool = False  # differs from the previous report's state

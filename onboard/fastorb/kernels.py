@@ -1,4 +1,4 @@
-"""Compiled inner loops of the FastORB tracker (numba), as onboard/kernels.py
+"""Compiled inner loops of the FastORB tracker (numba), as onboard/nislam/kernels.py
 is for NI-SLAM: each replaces a chain of small numpy passes whose call
 overhead and temporaries cost more than the arithmetic on a few hundred
 points. The numpy forms they replace stay the reference in the tests

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.fastorb_kernels import depth_at
-from onboard.fastorb_motion import camera_in_world
-from onboard.frames import KeyframeCloud
+from onboard.core.messages import KeyframeCloud
+from onboard.core.se3 import camera_in_world
+from onboard.fastorb.kernels import depth_at
 
 
 def sample_depth(

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from onboard.fastorb_kernels import gms_keep, one_to_one, radius_pairs
+from onboard.fastorb.kernels import gms_keep, one_to_one, radius_pairs
 
 # GMS's four grid placements: the left grid moved by no or half a cell in x
 # and in y, independently.

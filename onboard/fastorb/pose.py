@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from onboard.fastorb_kernels import pose_normal_equations, pose_residual_norms
-from onboard.fastorb_motion import pose_from_rvec, rvec_tvec, se3_exp
+from onboard.core.se3 import pose_from_rvec, rvec_tvec, se3_exp
+from onboard.fastorb.kernels import pose_normal_equations, pose_residual_norms
 
 
 @dataclass(frozen=True)
@@ -252,3 +252,8 @@ def world_pose_variance(T_cw: np.ndarray, cov: np.ndarray) -> np.ndarray:
     var_r = np.diag(Rt @ cov[:3, :3] @ Rt.T)
     var = np.concatenate([var_p, var_r])
     return np.where(np.isfinite(var), np.maximum(var, 0.0), np.nan)
+
+
+def restricted(pnp: PnpResult) -> PnpResult:
+    """The PnP result over its own inliers only (the tracked set keeps those)."""
+    return PnpResult(pnp.T_cw, np.ones(int(pnp.inliers.sum()), bool), pnp.rms_px, pnp.cov)

@@ -33,15 +33,18 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-from onboard import fastorb_kernels
-from onboard.fastorb_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
-from onboard.fastorb_match import (
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
+from onboard.core.rotations import so3_log
+from onboard.core.se3 import camera_in_world, inverse, make_pose
+from onboard.fastorb import kernels as fastorb_kernels
+from onboard.fastorb.features import Detector, Features, Outcome, Tracked, outcome_result
+from onboard.fastorb.local_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
+from onboard.fastorb.matching import (
     LkSettings,
     epipolar_inliers,
     gms_inliers,
@@ -49,158 +52,11 @@ from onboard.fastorb_match import (
     match_by_ratio,
     track_lk,
 )
-from onboard.fastorb_motion import (
-    FrameClock,
-    back_project,
-    camera_in_world,
-    inverse,
-    make_pose,
-    predict_uam,
-    project,
-)
-from onboard.fastorb_pose import PnpResult, PnpSettings, solve_pnp, world_pose_variance
-from onboard.geometry import so3_log
-from onboard.frames import (
-    AttitudeSource,
-    CameraIntrinsics,
-    KeyframeCloud,
-    RgbdFrame,
-    TrackResult,
-    TrackState,
-)
+from onboard.fastorb.motion import FrameClock, back_project, predict_uam, project
+from onboard.fastorb.params import FastOrbParams
+from onboard.fastorb.pose import PnpResult, PnpSettings, restricted, solve_pnp
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class FastOrbParams:
-    """Tracker parameters; defaults are the paper's where it gives one, the
-    others measured on tum_fr1_rpy (config/default.toml has the figures)."""
-
-    # Pre-processing (Sec. III, Fig. 3)
-    clahe_clip_limit: float = 2.0
-    clahe_tiles: int = 8  # tiles per image side
-    # ORB keypoints as ORB-SLAM2: 1000 over 8 levels at scale 1.2 (Sec. IV-C)
-    orb_features: int = 1000
-    orb_scale_factor: float = 1.2
-    orb_levels: int = 8
-    orb_fast_threshold: int = 20
-    # Stage one: UAM-seeded pyramid LK (Algorithms 1-2, Eqs. 14-20)
-    use_motion_model: bool = True  # false: plain KLT from the old positions (Table I's baseline)
-    uam_accel_gain: float = 1.0  # 1: uniform acceleration (Eq. 14); 0: constant velocity
-    uam_whole_frames: bool = True  # motion model on whole frame periods, not jittery stamps
-    lk_win_px: int = 5  # omega = 2: a 5 x 5 window, k = 25 of Eq. 17
-    lk_max_level: int = 2  # 1/4 covers ORB's 1/1.2^7 = 1/3.6 (see fastorb_match.track_lk)
-    lk_max_iter: int = 10  # N_itermax of Eq. 20
-    lk_eps_px: float = 0.03  # stop when an update moves less than this [px]
-    lk_max_error: float = 20.0  # Eq. 19 window residual above this rejects a point [gray]
-    lk_min_eigen: float = 1e-4  # OpenCV minEigThreshold: weaker windows are not tracked
-    # Stage two: motion smoothness (GMS) and the epipolar constraint (Sec. IV-D)
-    gms_grid_cols: int = 16
-    gms_grid_rows: int = 12
-    gms_alpha: float = 6.0  # GMS threshold tau = alpha sqrt(n)
-    epipolar_threshold_px: float = 2.0
-    epipolar_confidence: float = 0.99
-    # Pose: PnP + RANSAC, then robust refinement
-    pnp_reprojection_px: float = 3.0  # RANSAC inlier threshold
-    pnp_iterations: int = 100
-    pnp_confidence: float = 0.99
-    pnp_huber_px: float = 1.0  # Huber-weighted Gauss-Newton [px]; 0 with rgbd_bf_px 0: LM
-    rgbd_bf_px: float = 120.0  # disparity residual bf / z (ORB-SLAM2 TUM: 40); 0: pixels only
-    rgbd_max_depth_m: float = 3.0  # ... for points closer than this (ORB-SLAM2: 40 b = 3.1 m)
-    pnp_sigma_gate: float = 3.0  # final inliers within this many robust sigmas ...
-    pnp_min_gate_px: float = 1.5  # ... but at least this far
-    max_jump_m: float = 0.2  # a pose this far from the prediction (per frame period) ...
-    max_jump_deg: float = 15.0  # ... or turned this far from it is not believed
-    max_coast_frames: int = 3  # frames without a believed pose before lost
-    # Landmarks from depth
-    landmark_max_sd_m: float = 0.002  # no new landmarks from a pose with a larger position sd
-    min_depth_m: float = 0.2
-    max_depth_m: float = 6.0
-    depth_edge_rel: float = 0.05  # 4x4 depth spread above this share of the depth: no landmark
-    min_point_distance_px: float = 8.0  # new keypoints keep this far from followed ones
-    # Descriptor-free local-map tracking
-    map_track_every: int = 2  # every n-th frame
-    map_track_keyframes: int = 1  # from the n key frames nearest in view (one LK call each)
-    map_track_max: int = 400  # landmarks per frame at most
-    map_track_radius_px: float = 10.0  # LK may move a landmark this far from its projection
-    # When tracking thins out
-    local_map_min_inliers: int = 100  # below: ORB with descriptors, matched to the local map
-    redetect_min_inliers: int = 150  # below: ORB detection only (the paper: 300)
-    min_inliers: int = 30  # fewer: no pose
-    # Key frames (Sec. III)
-    keyframe_max_frames: int = 20  # a key frame at least this often ...
-    keyframe_inlier_ratio: float = 0.65  # ... or when inliers fall below this share of the last key's
-    keyframe_min_inliers: int = 100  # never from a frame with fewer inliers
-    local_map_keyframes: int = 5  # key frames nearest in view forming the local map
-    max_keyframes: int = 50  # kept for the local map and re-localisation
-    match_radius_px: float = 15.0  # local map: keypoint this close to a landmark's projection
-    match_max_hamming: int = 64  # ... and this close in descriptor
-    # Lost and re-localisation
-    reloc_keyframes: int = 4  # key frames tried per lost frame besides the two newest
-    reloc_ratio: float = 0.8  # Lowe's ratio test (no pose prior)
-    reloc_min_inliers: int = 40
-    lost_reset_frames: int = 30  # re-localisation fails this long: new map (reset_counter + 1)
-    init_from_attitude: bool = True  # orient a new map by the attitude source, if it has one
-    map_cloud_stride: int = 4  # key-frame clouds from every n-th pixel; 0: none
-
-
-@dataclass
-class _Features:
-    """ORB keypoints of the current frame; `desc` only when computed."""
-
-    uv: np.ndarray  # (N, 2) float64
-    desc: np.ndarray | None  # (N, 32) uint8
-
-
-@dataclass
-class _Tracked:
-    """Points followed from frame to frame: pixel in the last frame, and the
-    landmark each observes (id and world position, fixed at its creation)."""
-
-    uv: np.ndarray  # (N, 2) float32
-    xyz_W: np.ndarray  # (N, 3)
-    ids: np.ndarray  # (N,) int64
-
-    @classmethod
-    def empty(cls) -> "_Tracked":
-        return cls(np.zeros((0, 2), np.float32), np.zeros((0, 3)), np.zeros(0, np.int64))
-
-    def __len__(self) -> int:
-        return len(self.uv)
-
-    def subset(self, sel: np.ndarray) -> "_Tracked":
-        return _Tracked(self.uv[sel], self.xyz_W[sel], self.ids[sel])
-
-    @classmethod
-    def joined(cls, parts: list["_Tracked"]) -> "_Tracked":
-        if not parts:
-            return cls.empty()
-        return cls(np.concatenate([p.uv for p in parts]).astype(np.float32, copy=False),
-                   np.concatenate([p.xyz_W for p in parts]),
-                   np.concatenate([p.ids for p in parts]))
-
-    def extended(self, other: "_Tracked") -> "_Tracked":
-        return _Tracked(
-            np.concatenate([self.uv, other.uv.astype(np.float32)]),
-            np.concatenate([self.xyz_W, other.xyz_W]),
-            np.concatenate([self.ids, other.ids]),
-        )
-
-
-@dataclass
-class _Outcome:
-    """A posed frame: pose, the tracked set for the next frame (PnP inliers
-    and new points), the PnP fit, and the frame's keypoints if detected."""
-
-    T_cw: np.ndarray
-    tracked: _Tracked
-    pnp: PnpResult
-    features: _Features | None
-
-    @property
-    def inliers(self) -> int:
-        return int(self.pnp.inliers.sum())
 
 
 class FastOrbTracker:
@@ -217,10 +73,7 @@ class FastOrbTracker:
         )
         self._size = (intrinsics.width, intrinsics.height)
         self._clahe = cv2.createCLAHE(p.clahe_clip_limit, (p.clahe_tiles, p.clahe_tiles))
-        self._orb = cv2.ORB_create(
-            nfeatures=p.orb_features, scaleFactor=p.orb_scale_factor, nlevels=p.orb_levels,
-            fastThreshold=p.orb_fast_threshold,
-        )
+        self._detector = Detector(p, self._size)
         self._lk = LkSettings(p.lk_win_px, p.lk_max_level, p.lk_max_iter, p.lk_eps_px,
                               p.lk_max_error, p.lk_min_eigen)
         self._pnp = PnpSettings(p.pnp_reprojection_px, p.pnp_iterations, p.pnp_confidence,
@@ -228,7 +81,7 @@ class FastOrbTracker:
                                 min_gate_px=p.pnp_min_gate_px, bf_px=p.rgbd_bf_px)
         self._map = LocalMap(p.max_keyframes, p.local_map_keyframes)
         self._state = TrackState.INITIALIZING
-        self._tracked = _Tracked.empty()
+        self._tracked = Tracked.empty()
         self._prev_gray: np.ndarray | None = None
         self._history: deque[tuple[float, np.ndarray]] = deque(maxlen=3)  # (motion time, T_cw)
         self._clock = FrameClock()
@@ -278,7 +131,7 @@ class FastOrbTracker:
         n_in = 0 if outcome is None else outcome.inliers
         if n_in < self.p.local_map_min_inliers or self._keyframe_due(n_in):  # step 7
             guess = prior if outcome is None else outcome.T_cw
-            kept = _Tracked.empty() if outcome is None else outcome.tracked
+            kept = Tracked.empty() if outcome is None else outcome.tracked
             found = self._track_local_map(frame, gray, guess, kept)
             if found is not None and self._plausible(found.T_cw, prior):
                 outcome = found
@@ -303,7 +156,7 @@ class FastOrbTracker:
             outcome.tracked = self._replenish(frame, gray, outcome.T_cw, outcome.tracked)
         return self._tracked_result(frame.t_s, outcome, new_key, finished)
 
-    def _firm(self, outcome: _Outcome) -> bool:
+    def _firm(self, outcome: Outcome) -> bool:
         """Whether the pose is firm enough to place new landmarks with: its
         position standard deviation (from the PnP covariance) at most
         landmark_max_sd_m. A blurred frame's few tracks give a pose that is
@@ -312,7 +165,7 @@ class FastOrbTracker:
         var = np.diag(outcome.pnp.cov)[3:]
         return bool(np.all(np.isfinite(var)) and np.sqrt(var.max()) <= self.p.landmark_max_sd_m)
 
-    def _pose(self, moved: _Tracked, prior: np.ndarray, depth_m: np.ndarray) -> _Outcome | None:
+    def _pose(self, moved: Tracked, prior: np.ndarray, depth_m: np.ndarray) -> Outcome | None:
         """PnP + RANSAC and refinement on the followed points; None without a
         fit or when the pose jumps implausibly far from the prediction (e.g.
         tracks dragged along by motion blur)."""
@@ -321,7 +174,7 @@ class FastOrbTracker:
             log.debug("no pose from %d points: %s", len(moved),
                       "PnP failed" if pnp is None else "implausible jump")
             return None
-        return _Outcome(pnp.T_cw, moved.subset(pnp.inliers), _restrict(pnp), None)
+        return Outcome(pnp.T_cw, moved.subset(pnp.inliers), restricted(pnp), None)
 
     def _plausible(self, T_cw: np.ndarray, prior: np.ndarray) -> bool:
         """Whether a pose stays within max_jump_m / max_jump_deg of the motion
@@ -335,7 +188,7 @@ class FastOrbTracker:
         shift_m = float(np.linalg.norm(camera_in_world(T_cw)[0] - camera_in_world(prior)[0]))
         return shift_m <= self.p.max_jump_m * steps**2 and angle_deg <= self.p.max_jump_deg * steps**2
 
-    def _coast_or_lose(self, t_s: float, prior: np.ndarray, moved: _Tracked) -> TrackResult:
+    def _coast_or_lose(self, t_s: float, prior: np.ndarray, moved: Tracked) -> TrackResult:
         """No trustworthy pose: for up to max_coast_frames frames keep the
         points LK followed and let the motion model carry the pose (not
         reported), then give up (lost)."""
@@ -346,13 +199,13 @@ class FastOrbTracker:
         self._history.append((self._t_motion, prior))
         return self._unposed(t_s, TrackState.TRACKING, "no pose this frame")
 
-    def _track_frame_to_frame(self, gray: np.ndarray, prior: np.ndarray) -> _Tracked:
+    def _track_frame_to_frame(self, gray: np.ndarray, prior: np.ndarray) -> Tracked:
         """Stages one and two (steps 2-4): the tracked points that LK followed
         from the last frame and that pass the motion-smoothness and epipolar
         checks, at their new pixels."""
         trk = self._tracked
         if len(trk) < self.p.min_inliers or self._prev_gray is None:
-            return _Tracked.empty()
+            return Tracked.empty()
         guess = self._seed(trk, prior) if self.p.use_motion_model else None  # Eq. 16
         uv, ok = track_lk(self._prev_gray, gray, trk.uv, guess, self._lk)  # Eqs. 17-20
         idx = np.flatnonzero(ok)
@@ -360,7 +213,7 @@ class FastOrbTracker:
                               (self.p.gms_grid_cols, self.p.gms_grid_rows), self.p.gms_alpha)]
         idx = idx[epipolar_inliers(trk.uv[idx], uv[idx], self.p.epipolar_threshold_px,
                                    self.p.epipolar_confidence)]
-        return _Tracked(uv[idx], trk.xyz_W[idx], trk.ids[idx])
+        return Tracked(uv[idx], trk.xyz_W[idx], trk.ids[idx])
 
     def _solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray) -> PnpResult | None:
         """PnP + RANSAC, then refinement against the landmarks
@@ -370,7 +223,7 @@ class FastOrbTracker:
                          self.p.depth_edge_rel) if len(uv) else np.zeros(0)
         return solve_pnp(xyz_W, uv, self.K, self._pnp, self.p.min_inliers, z)
 
-    def _seed(self, trk: _Tracked, prior: np.ndarray) -> np.ndarray:
+    def _seed(self, trk: Tracked, prior: np.ndarray) -> np.ndarray:
         """Eq. 16: predicted pixels; points behind the camera keep their old pixel."""
         uv, z = project(self.K, prior, trk.xyz_W)
         return np.where((z > 1e-3)[:, None], uv, trk.uv).astype(np.float32)
@@ -380,21 +233,21 @@ class FastOrbTracker:
         frame: RgbdFrame,
         gray: np.ndarray,
         guess: np.ndarray,
-        kept: _Tracked,
-        feats: _Features | None = None,
-    ) -> _Outcome | None:
+        kept: Tracked,
+        feats: Features | None = None,
+    ) -> Outcome | None:
         """Track against the local map: ORB with descriptors on this frame,
         matched to the landmarks of the key frames nearest to the pose `guess`
         (projected with it); PnP on those and the still-tracked points. A
         tracked point that meets an older landmark takes it over, so drift
         does not outlive the return to a mapped view."""
         if feats is None:
-            feats = self._detect(gray, with_descriptors=True)
+            feats = self._detector.detect(gray, with_descriptors=True)
         found = self._match_map(feats, guess)
-        near = self._pair_with(kept.uv, found.uv, 2.0)  # kept index per found point, -1: none
+        near = self._detector.pair_with(kept.uv, found.uv, 2.0)  # kept index per found point, -1: none
         older = near >= 0
         older[older] = found.ids[older] < kept.ids[near[older]]
-        kept = _Tracked(kept.uv, kept.xyz_W.copy(), kept.ids.copy())
+        kept = Tracked(kept.uv, kept.xyz_W.copy(), kept.ids.copy())
         kept.xyz_W[near[older]] = found.xyz_W[older]
         kept.ids[near[older]] = found.ids[older]
         new = (near < 0) & ~np.isin(found.ids, kept.ids)
@@ -402,9 +255,9 @@ class FastOrbTracker:
         pnp = self._solve(both.xyz_W, both.uv, frame.depth_m)
         if pnp is None:
             return None
-        return _Outcome(pnp.T_cw, both.subset(pnp.inliers), _restrict(pnp), feats)
+        return Outcome(pnp.T_cw, both.subset(pnp.inliers), restricted(pnp), feats)
 
-    def _track_map_points(self, gray: np.ndarray, prior: np.ndarray, moved: _Tracked) -> _Tracked:
+    def _track_map_points(self, gray: np.ndarray, prior: np.ndarray, moved: Tracked) -> Tracked:
         """Descriptor-free local-map tracking: landmarks of the key frames
         nearest to the predicted pose that project into this frame away from
         the followed points, followed by LK from their key frame's image,
@@ -419,17 +272,17 @@ class FastOrbTracker:
         view = ((z > self.p.min_depth_m) & (uv[:, 0] >= m) & (uv[:, 0] < w - m)
                 & (uv[:, 1] >= m) & (uv[:, 1] < h - m))
         sel = np.flatnonzero(view)
-        sel = sel[self._free(moved.uv, uv[sel])][: self.p.map_track_max]
+        sel = sel[self._detector.free(moved.uv, uv[sel])][: self.p.map_track_max]
         kf = mp.kf[rows[sel]]
         parts = []
         for slot in np.unique(kf):
             g = sel[kf == slot]
             at, ok = track_lk(mp.keyframes[slot].gray, gray, mp.uv[rows[g]], uv[g], self._lk)
             ok &= np.sum((at - uv[g]) ** 2, axis=1) <= self.p.map_track_radius_px**2
-            parts.append(_Tracked(at[ok], mp.xyz_W[rows[g[ok]]], mp.ids[rows[g[ok]]]))
-        return _Tracked.joined(parts)
+            parts.append(Tracked(at[ok], mp.xyz_W[rows[g[ok]]], mp.ids[rows[g[ok]]]))
+        return Tracked.joined(parts)
 
-    def _match_map(self, feats: _Features, guess: np.ndarray) -> _Tracked:
+    def _match_map(self, feats: Features, guess: np.ndarray) -> Tracked:
         """Keypoints matched to local-map landmarks by projection and descriptor."""
         mp = self._map.points_near(guess)
         uv_map, z_map = project(self.K, guess, mp.xyz_W)
@@ -441,21 +294,21 @@ class FastOrbTracker:
             self.p.match_max_hamming,
         )
         map_i = view[map_i]
-        return _Tracked(feats.uv[kp_i].astype(np.float32), mp.xyz_W[map_i], mp.ids[map_i])
+        return Tracked(feats.uv[kp_i].astype(np.float32), mp.xyz_W[map_i], mp.ids[map_i])
 
     def _replenish(
-        self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: _Tracked
-    ) -> _Tracked:
+        self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: Tracked
+    ) -> Tracked:
         """Fewer than redetect_min_inliers: ORB detection only (no descriptors)
         where no tracked point is, new landmarks from depth."""
-        feats = self._detect(gray, with_descriptors=False, avoid=tracked.uv)
-        new, _ = self._landmarks(frame, T_cw, feats.uv[self._free(tracked.uv, feats.uv)])
+        feats = self._detector.detect(gray, with_descriptors=False, avoid=tracked.uv)
+        new, _ = self._landmarks(frame, T_cw, feats.uv[self._detector.free(tracked.uv, feats.uv)])
         room = max(self.p.orb_features - len(tracked), 0)
         return tracked.extended(new.subset(slice(0, room)))
 
     def _landmarks(
         self, frame: RgbdFrame, T_cw: np.ndarray, uv: np.ndarray
-    ) -> tuple[_Tracked, np.ndarray]:
+    ) -> tuple[Tracked, np.ndarray]:
         """New landmarks (fresh ids) for those pixels `uv` that have usable
         depth, and which those were (bool (N,))."""
         z = sample_depth(frame.depth_m, uv, self.p.min_depth_m, self.p.max_depth_m,
@@ -465,7 +318,7 @@ class FastOrbTracker:
         ids = np.arange(self._next_landmark_id, self._next_landmark_id + n, dtype=np.int64)
         self._next_landmark_id += n
         xyz = back_project(self.K, T_cw, uv[ok], z[ok])
-        return _Tracked(uv[ok].astype(np.float32), xyz, ids), ok
+        return Tracked(uv[ok].astype(np.float32), xyz, ids), ok
 
     # ------------------------------------------------------------ key frames
     def _keyframe_due(self, n_inliers: int) -> bool:
@@ -480,7 +333,7 @@ class FastOrbTracker:
                 or n_inliers < self.p.keyframe_inlier_ratio * self._keyframe_inliers)
 
     def _make_keyframe(
-        self, frame: RgbdFrame, gray: np.ndarray, outcome: _Outcome
+        self, frame: RgbdFrame, gray: np.ndarray, outcome: Outcome
     ) -> tuple[KeyframeCloud, ...]:
         """The posed frame with descriptors becomes a key frame (step 7). A
         keypoint on a tracked point takes its landmark, the others get new
@@ -488,11 +341,11 @@ class FastOrbTracker:
         feats = outcome.features
         assert feats is not None and feats.desc is not None
         tracked = outcome.tracked
-        on = self._pair_with(tracked.uv, feats.uv, 1.5)
+        on = self._detector.pair_with(tracked.uv, feats.uv, 1.5)
         fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0])
         kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on < 0)[has_depth]])
         kf_pts = tracked.subset(on[on >= 0]).extended(fresh)
-        free = self._free(tracked.uv, fresh.uv)
+        free = self._detector.free(tracked.uv, fresh.uv)
         room = max(self.p.orb_features - len(tracked), 0)
         outcome.tracked = tracked.extended(fresh.subset(np.flatnonzero(free)[:room]))
         finished = self._take_cloud()
@@ -529,13 +382,13 @@ class FastOrbTracker:
 
     def _initialise(self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray) -> TrackResult:
         """A new map: this frame is the first key frame, at pose T_cw."""
-        feats = self._detect(gray, with_descriptors=True)
+        feats = self._detector.detect(gray, with_descriptors=True)
         first, _ = self._landmarks(frame, T_cw, feats.uv)
         if len(first) < self.p.keyframe_min_inliers:
             return self._unposed(frame.t_s, TrackState.INITIALIZING, "too few keypoints with depth")
         self._map.clear()
         pnp = PnpResult(T_cw, np.ones(len(first), bool), 0.0, np.diag([1e-8] * 6))
-        outcome = _Outcome(T_cw, first, pnp, feats)
+        outcome = Outcome(T_cw, first, pnp, feats)
         finished = self._make_keyframe(frame, gray, outcome)
         self._state = TrackState.TRACKING
         return self._tracked_result(frame.t_s, outcome, True, finished, history_reset=True)
@@ -544,7 +397,7 @@ class FastOrbTracker:
         self._state = TrackState.LOST
         self._lost_frames = 1
         self._reloc_cursor = 0
-        self._tracked = _Tracked.empty()
+        self._tracked = Tracked.empty()
         self._history.clear()
         return self._unposed(t_s, TrackState.LOST, reason)
 
@@ -556,14 +409,14 @@ class FastOrbTracker:
         around the pose found. Success re-enters the map with a jump, so
         reset_counter counts it; lost_reset_frames failures in a row start a
         new map at the last trusted pose."""
-        feats = self._detect(gray, with_descriptors=True)
+        feats = self._detector.detect(gray, with_descriptors=True)
         for kf in self._reloc_candidates():
             q, t = match_by_ratio(feats.desc, kf.desc, self.p.reloc_ratio, self.p.match_max_hamming)
             pnp = solve_pnp(kf.xyz_W[t], feats.uv[q], self.K, self._pnp,
                             self.p.reloc_min_inliers)
             if pnp is None:
                 continue
-            found = _Tracked(feats.uv[q].astype(np.float32), kf.xyz_W[t], kf.ids[t])
+            found = Tracked(feats.uv[q].astype(np.float32), kf.xyz_W[t], kf.ids[t])
             outcome = self._track_local_map(frame, gray, pnp.T_cw, found.subset(pnp.inliers),
                                             feats)
             if outcome is None or outcome.inliers < self.p.reloc_min_inliers:
@@ -593,59 +446,11 @@ class FastOrbTracker:
         self._reloc_cursor = start + n
         return kfs[:2] + [rest[(start + i) % len(rest)] for i in range(n)]
 
-    # ---------------------------------------------------------------- helpers
-    def _detect(
-        self, gray: np.ndarray, with_descriptors: bool, avoid: np.ndarray | None = None
-    ) -> _Features:
-        """ORB keypoints (ORB.detect only, or detectAndCompute for key frames),
-        optionally masked away from the pixels `avoid`."""
-        mask = None if avoid is None or len(avoid) == 0 else self._free_mask(avoid)
-        if with_descriptors:
-            kps, desc = self._orb.detectAndCompute(gray, mask)
-            if desc is None:
-                desc = np.zeros((0, 32), np.uint8)
-        else:
-            kps, desc = self._orb.detect(gray, mask), None
-        uv = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2) if kps else np.zeros((0, 2))
-        return _Features(uv, desc)
-
-    def _occupancy(self, uv: np.ndarray) -> tuple[np.ndarray, int]:
-        """Cells of min_point_distance_px with a point in them or a neighbour."""
-        cell = max(int(self.p.min_point_distance_px), 1)
-        w, h = self._size
-        occ = np.zeros((h // cell + 1, w // cell + 1), np.uint8)
-        if len(uv):
-            c = np.clip((uv // cell).astype(np.int64), 0, [occ.shape[1] - 1, occ.shape[0] - 1])
-            occ[c[:, 1], c[:, 0]] = 1
-            occ = cv2.dilate(occ, np.ones((3, 3), np.uint8))
-        return occ, cell
-
-    @staticmethod
-    def _pair_with(taken: np.ndarray, uv: np.ndarray, radius_px: float) -> np.ndarray:
-        """For each of `uv`, the index of the nearest of `taken` within
-        `radius_px`, or -1."""
-        if len(taken) == 0 or len(uv) == 0:
-            return np.full(len(uv), -1, np.int64)
-        dist, j = cKDTree(taken).query(uv, distance_upper_bound=radius_px)
-        return np.where(np.isfinite(dist), j, -1).astype(np.int64)
-
-    def _free(self, taken: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """Which of `uv` lie away (about min_point_distance_px) from `taken`."""
-        occ, cell = self._occupancy(taken)
-        c = np.clip((uv // cell).astype(np.int64), 0, [occ.shape[1] - 1, occ.shape[0] - 1])
-        return occ[c[:, 1], c[:, 0]] == 0
-
-    def _free_mask(self, taken: np.ndarray) -> np.ndarray:
-        occ, cell = self._occupancy(taken)
-        w, h = self._size
-        full = np.repeat(np.repeat(occ, cell, axis=0), cell, axis=1)[:h, :w]
-        return np.where(full > 0, 0, 255).astype(np.uint8)
-
     # ---------------------------------------------------------------- results
     def _tracked_result(
         self,
         t_s: float,
-        outcome: _Outcome,
+        outcome: Outcome,
         new_key: bool,
         finished: tuple[KeyframeCloud, ...],
         history_reset: bool = False,
@@ -661,53 +466,10 @@ class FastOrbTracker:
         return self._result(t_s, state, None, reason, False, ())
 
     def _result(
-        self,
-        t_s: float,
-        state: TrackState,
-        outcome: _Outcome | None,
-        reason: str | None,
-        new_key: bool,
-        finished: tuple[KeyframeCloud, ...],
+        self, t_s: float, state: TrackState, outcome: Outcome | None, reason: str | None,
+        new_key: bool, finished: tuple[KeyframeCloud, ...],
     ) -> TrackResult:
-        """The shared result: a pose (trusted) with `outcome`, else none."""
         kf = self._map.newest
-        if outcome is None:
-            p_W = R_W_C = None
-            pose_var, quality, n_in = np.full(6, np.nan), 0, 0
-        else:
-            p_W, R_W_C = camera_in_world(outcome.T_cw)
-            pose_var = world_pose_variance(outcome.T_cw, outcome.pnp.cov)
-            n_in = outcome.inliers
-            quality = self._quality(n_in, outcome.pnp.rms_px)
-        return TrackResult(
-            t_s=t_s,
-            state=state,
-            trusted=outcome is not None,
-            p_W_m=p_W,
-            R_W_C=R_W_C,
-            pose_var=pose_var,
-            quality=quality,
-            psr=float("nan"),  # no correlation peak in this tracker
-            keyframe_id=-1 if kf is None else kf.keyframe_id,
-            new_keyframe=new_key,
-            reset_counter=self._reset_counter,
-            lost_reason=reason,
-            shift_cells=(0.0, 0.0),
-            tz_m=0.0,
-            res_m=0.0,
-            rotation_residual_rad=np.zeros(3),
-            attitude_offset_s=0.0,
-            matched_cells=n_in,  # PnP inliers
-            finished_keyframes=finished,
-        )
-
-    def _quality(self, n_inliers: int, rms_px: float) -> int:
-        """100 at redetect_min_inliers inliers and sub-pixel residuals; falls
-        with fewer inliers and with the reprojection RMS beyond 1 px."""
-        share = min(n_inliers / max(self.p.redetect_min_inliers, 1), 1.0)
-        return int(np.clip(round(100.0 * share / max(rms_px, 1.0)), 1, 100))
-
-
-def _restrict(pnp: PnpResult) -> PnpResult:
-    """The PnP result over its own inliers only (the tracked set keeps those)."""
-    return PnpResult(pnp.T_cw, np.ones(int(pnp.inliers.sum()), bool), pnp.rms_px, pnp.cov)
+        return outcome_result(t_s, state, outcome, reason, new_key, finished,
+                              -1 if kf is None else kf.keyframe_id, self._reset_counter,
+                              self.p.redetect_min_inliers)

@@ -1,55 +1,54 @@
-"""The tracker interface and the factory that builds one from config.
+"""The one registry of trackers: the names the configuration accepts
+(`[tracker] name`, `--tracker`) and the factory that builds one.
 
 Every tracker is a pure core (arrays in, a result out) behind the same
-`Tracker` protocol, so replay, bench and the onboard loop never ask which one
-they hold.
+`onboard.core.messages.Tracker` protocol, so replay, bench and the onboard loop
+never ask which one they hold. The factory reads each tracker's parameters from
+its own section of the configuration (`[nislam]`, `[fastorb]`); it takes any
+object carrying those sections, so this module needs nothing of the
+application's configuration (which reads `TRACKER_NAMES` from here).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from onboard import NislamError
-from onboard.frames import AttitudeSource, CameraIntrinsics, RgbdFrame
-from onboard.frames import KeyframeCloud, TrackResult
-from onboard.fastorb import FastOrbTracker
-from onboard.nislam import NislamTracker
-
-if TYPE_CHECKING:  # config imports TRACKER_NAMES from here
-    from onboard.config import Config
-
-
-class Tracker(Protocol):
-    """One camera's tracking front end."""
-
-    name: str
-
-    def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
-        """Track one frame; attitude is looked up at the frame's capture time."""
-        ...
-
-    def finish(self) -> KeyframeCloud | None:
-        """End of a run: the current key's cloud for the map, if any."""
-        ...
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.messages import Tracker
+from onboard.fastorb.params import FastOrbParams
+from onboard.fastorb.tracker import FastOrbTracker
+from onboard.nislam.params import NislamParams
+from onboard.nislam.tracker import NislamTracker
 
 
-def _make_nislam(intrinsics: CameraIntrinsics, cfg: Config) -> Tracker:
+class TrackerSections(Protocol):
+    """The trackers' configuration sections (onboard.app.config.Config has them)."""
+
+    @property
+    def nislam(self) -> NislamParams: ...
+
+    @property
+    def fastorb(self) -> FastOrbParams: ...
+
+
+def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     return NislamTracker(intrinsics, cfg.nislam)
 
 
-def _make_fastorb(intrinsics: CameraIntrinsics, cfg: Config) -> Tracker:
+def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     return FastOrbTracker(intrinsics, cfg.fastorb)
 
 
-_REGISTRY: dict[str, Callable[[CameraIntrinsics, Config], Tracker]] = {
+_REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
     "nislam": _make_nislam,
     "fastorb": _make_fastorb,
 }
 TRACKER_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 
 
-def make_tracker(name: str, intrinsics: CameraIntrinsics, cfg: Config) -> Tracker:
+def make_tracker(name: str, intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     """A fresh tracker `name` for a camera with `intrinsics`, parameters from `cfg`."""
     try:
         build = _REGISTRY[name]

@@ -26,8 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from onboard.frames import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult
-from onboard.trackers import Tracker
+from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Tracker, TrackResult
 
 log = logging.getLogger(__name__)
 

@@ -180,3 +180,14 @@ def _psr(r: np.ndarray, v: int, u: int, r_max: float, e: int) -> tuple[float, fl
     if not np.isfinite(var) or var <= 0.0:
         return 0.0, total
     return (r_max - mean) / np.sqrt(var), total
+
+
+def whiten(gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Zero-mean gray over filled cells, holes at 0: holes then carry no
+    pattern of their own (the authors fill them with 0.5, which correlates the
+    hole layout of the two images)."""
+    n = float(mask.sum())
+    mean = float(np.vdot(gray, mask)) / n if n > 0 else 0.0
+    out = gray - np.float32(mean)
+    out *= mask
+    return out

@@ -13,8 +13,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from onboard.frames import CameraIntrinsics
-from onboard.kernels import strided_depth_gray, zbuffer_project
+from onboard.core.camera import CameraIntrinsics
+from onboard.nislam.kernels import strided_depth_gray, zbuffer_project
 
 
 @dataclass(frozen=True)
@@ -87,7 +87,7 @@ def project(
 ) -> AxonometricImage:
     """Rotate the cloud into the key's axes (p' = R_rel p, Sec. IV-A1) and
     project it orthographically onto the grid with a z-buffer (nearest point
-    wins, onboard.kernels.zbuffer_project).
+    wins, onboard.nislam.kernels.zbuffer_project).
 
     Cell u covers x' in [(u - W/2) res, (u + 1 - W/2) res): a floor, not C++'s
     truncation toward zero, so the cells either side of the axis are the same

@@ -20,276 +20,28 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from onboard import kernels as kern
-from onboard.correlation import KernelCorrelationFilter, Peak, find_peak
-from onboard.frames import (
-    AttitudeSource,
-    CameraIntrinsics,
-    KeyframeCloud,
-    RgbdFrame,
-    TrackResult,
-    TrackState,
+from onboard.core.camera import CameraIntrinsics
+from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
+from onboard.nislam import kernels as kern
+from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate, overlap
+from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
+from onboard.nislam.depth import DepthFit, depth_translation
+from onboard.nislam.keymap import KeyframeMap
+from onboard.nislam.keys import Key, KeyStore
+from onboard.nislam.params import NislamParams
+from onboard.nislam.projection import (
+    AxonometricImage,
+    Cloud,
+    adaptive_resolution,
+    make_cloud,
+    project,
 )
-from onboard.geometry import so3_log
-from onboard.keymap import KeyframeMap
-from onboard.projection import AxonometricImage, Cloud, adaptive_resolution, make_cloud, project
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class NislamParams:
-    """Tracker parameters; defaults are the tuned values (see config/*.toml comments)."""
-
-    grid_width: int = 480
-    grid_height: int = 360
-    adaptive_mu: float = 0.8  # share of points the key grid must hold (ref. §3; all launches: 0.8)
-    max_distance_m: float = 4.0
-    len_hist: int = 50
-    hist_sample: int = 5
-    min_depth_m: float = 0.2
-    max_depth_m: float = 6.0
-    pixel_stride: int = 2  # every 2nd pixel: ~1 point per cell at 1.5 m, a quarter of the work
-    kernel_sigma: float = 0.2
-    lam: float = 0.1
-    label_sigma_cells: float = 1.0
-    psr_exclude_cells: int = 5  # sidelobe excludes an 11x11 window around the peak
-    psr_keyframe: float = 30.0  # T_r of Eq. 17
-    psr_refine: float = 100.0  # refine the key only on confident matches (ref. §8: 100)
-    psr_lost: float = 6.0  # below this the match is not trusted
-    min_valid_fraction: float = 0.05  # of grid cells covered by the current cloud
-    gate_gray: float = 0.1  # |C~ - C_key| for a well-matched cell (Eq. 18, T_c)
-    gate_depth_m: float = 0.1  # |Delta - median| for a well-matched cell
-    min_matched_cells: int = 200
-    search_radius_m: float = 0.1  # peak search window around the predicted shift ...
-    search_speed_m_s: float = 1.5  # ... widened to this speed times the time since the last match
-    max_coast_s: float = 1.0  # frames without a trusted pose for longer than this: restart (reset)
-    map_keyframes: int = 16  # keys kept for re-use (onboard/keymap.py); 0: every new key is new
-    reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
-    reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
-    reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
-    reuse_reset_jump_m: float = 0.05  # a re-use moving the position this much beyond what it may have flown: reset
-    depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
-    depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
-    calibrate_time_offset: bool = True  # estimate the attitude time offset online
-    calibrate_every_n_frames: int = 4  # residual-rotation fit for the calibration on every n-th frame
-    calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
-    layer_min_gap_m: float = 0.2  # depth relief (2 x std) the residual rotation needs
-    layer_downsample: int = 4  # the residual rotation is fitted on blocks of n x n cells
-    layer_min_cover: float = 0.2  # a block takes part when this share of its cells is filled in both
-    time_offset_s: float = 0.0  # initial attitude time offset: attitude is queried at t + offset
-    time_offset_max_s: float = 0.1
-    time_offset_forget: float = 0.999  # per-update forgetting: a hardware constant, ~1000 updates of memory
-    rate_half_window_s: float = 0.02  # angular rate from attitude at t +- this
-
-
-@dataclass
-class _KeySlot:
-    """The memory of one key frame: its projection, the refined images and
-    the filter's spectra (6 MB at 480 x 360), allocated once by `_KeyStore`."""
-
-    gray: np.ndarray
-    depth_m: np.ndarray
-    mask: np.ndarray
-    bgr: np.ndarray
-    gray_ref: np.ndarray
-    depth_ref: np.ndarray
-    count: np.ndarray
-    spectra: tuple[np.ndarray, np.ndarray]  # conj(z_hat), alpha_hat
-
-    @classmethod
-    def allocate(cls, shape: tuple[int, int]) -> "_KeySlot":
-        h, w = shape
-
-        def resident(a: np.ndarray) -> np.ndarray:
-            a.fill(0)  # written now, so the pages are resident from the start
-            return a
-
-        def grid() -> np.ndarray:
-            return resident(np.empty(shape, np.float32))
-
-        def spectrum() -> np.ndarray:
-            return resident(np.empty((h, w // 2 + 1), np.complex64))
-
-        return cls(grid(), grid(), grid(), resident(np.empty((h, w, 3), np.uint8)), grid(),
-                   grid(), grid(), (spectrum(), spectrum()))
-
-    def hold(self, img: AxonometricImage) -> AxonometricImage:
-        """`img` copied into this slot; the refined images start from it."""
-        np.copyto(self.gray, img.gray)
-        np.copyto(self.depth_m, img.depth_m)
-        np.copyto(self.mask, img.mask)
-        if img.bgr is not None:
-            np.copyto(self.bgr, img.bgr)
-        else:
-            self.bgr.fill(0)  # not the colour of the slot's previous key
-        np.copyto(self.gray_ref, img.gray)
-        np.copyto(self.depth_ref, img.depth_m)
-        np.copyto(self.count, img.mask)
-        return AxonometricImage(self.gray, self.depth_m, self.mask, img.res_m, self.bgr)
-
-
-class _KeyStore:
-    """Memory for the key frames the tracker can hold at once (the kept keys
-    and the one being made), allocated when the tracker is built. Key frames
-    then never allocate: the process is at its working size from the first
-    frame, so a long flight cannot creep towards the companion computer's
-    memory limit, and a soak shows any real leak plainly."""
-
-    def __init__(self, shape: tuple[int, int], slots: int) -> None:
-        self._free = [_KeySlot.allocate(shape) for _ in range(slots)]
-
-    def take(self) -> _KeySlot:
-        if not self._free:
-            raise RuntimeError("key store exhausted: a key frame was not given back")
-        return self._free.pop()
-
-    def give_back(self, slot: _KeySlot) -> None:
-        self._free.append(slot)
-
-
-@dataclass
-class _Key:
-    """Key frame state: the learned filter, the refined images and the pose.
-    The arrays live in `slot` (see _KeyStore)."""
-
-    keyframe_id: int
-    t_s: float
-    p_W_m: np.ndarray
-    R_W_C: np.ndarray
-    img: AxonometricImage  # the key's projection, held in `slot`
-    filt: KernelCorrelationFilter
-    slot: _KeySlot
-    layers: "_RotationResidual | None" = None
-    shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
-
-    @property
-    def gray_ref(self) -> np.ndarray:
-        """Refined gray (count-weighted mean, Eq. 19a)."""
-        return self.slot.gray_ref
-
-    @property
-    def depth_ref(self) -> np.ndarray:
-        """Refined depth."""
-        return self.slot.depth_ref
-
-    @property
-    def count(self) -> np.ndarray:
-        """W_k of Eq. 19b."""
-        return self.slot.count
-
-    @property
-    def mask0(self) -> np.ndarray:
-        """Original key mask W_0."""
-        return self.slot.mask
-
-    def predicted_shift(self, t_s: float) -> tuple[float, float]:
-        """Constant-velocity prediction of the shift at `t_s` against this key,
-        in time rather than frames: after dropped frames it moves as far as
-        the camera did."""
-        if not self.shifts:
-            return (0.0, 0.0)
-        t1, u1, v1 = self.shifts[-1]
-        if len(self.shifts) == 1:
-            return (u1, v1)
-        t0, u0, v0 = self.shifts[-2]
-        k = (t_s - t1) / (t1 - t0) if t1 > t0 else 1.0
-        return (u1 + k * (u1 - u0), v1 + k * (v1 - v0))
-
-    def since_last_match_s(self, t_s: float) -> float:
-        return t_s - (self.shifts[-1][0] if self.shifts else self.t_s)
-
-
-@dataclass
-class _RotationResidual:
-    """The key image kept to measure the residual rotation of later frames.
-
-    A residual rotation theta shifts content by theta x p, i.e. in proportion
-    to depth, while a translation shifts every depth alike. One linearised
-    least-squares step over n x n blocks fits both at once: the block shift
-    d0 + r (z - z_mean), whose depth rate r is theta as the colour image sees
-    it. That is what the attitude time offset must be calibrated against (the
-    depth image of a Kinect-class sensor is captured at another instant, so
-    the tilt of the depth differences calibrates the wrong clock).
-
-    Only blocks covered in both images whose depths agree take part: where
-    near objects hide the far surfaces depends on where the camera stands,
-    and a correlation over whole layers was pulled by those moving hole
-    outlines (a 20-26 ms offset bias on a synthetic orbit with exact attitude,
-    none on a pure yaw spin). The blocks' own depths set the depth rate, so no
-    layer means enter it.
-    """
-
-    gray: np.ndarray  # the key's gray, depth and mask at full resolution
-    depth_m: np.ndarray
-    mask: np.ndarray
-
-    @classmethod
-    def train(cls, img: AxonometricImage, p: "NislamParams") -> "_RotationResidual | None":
-        depths = img.depth_m[img.mask > 0]
-        # Without depth relief a rotation cannot be told from a translation.
-        if len(depths) < 100 or float(np.std(depths)) < 0.5 * p.layer_min_gap_m:
-            return None
-        return cls(img.gray, img.depth_m, img.mask)
-
-    def residual(
-        self,
-        img: AxonometricImage,
-        shift_cells: tuple[float, float],
-        tz_m: float,
-        p: "NislamParams",
-    ) -> np.ndarray | None:
-        """theta (x, y, 0) in key axes [rad], or None when the fit is not
-        determined. The frame's depths are the key's minus t_z."""
-        n = p.layer_downsample
-        du, dv = int(round(shift_cells[0])), int(round(shift_cells[1]))
-        ks, cs = _overlap(img.gray.shape, du, dv)
-        if ks is None:
-            return None
-        # Coverage per block, not per cell, decides what both images hold: two
-        # sparse samplings of one surface share few cells but the same blocks.
-        key_g, key_z, key_cover = kern.block_means(self.gray[ks], self.depth_m[ks], self.mask[ks], n)
-        cur_g, cur_z, cur_cover = kern.block_means(img.gray[cs], img.depth_m[cs], img.mask[cs], n)
-        ok = (key_cover >= p.layer_min_cover) & (cur_cover >= p.layer_min_cover)
-        ok &= np.abs(cur_z + tz_m - key_z) < p.gate_depth_m
-        inner = ok[1:-1, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
-        if inner.sum() < 100:
-            return None
-        # Mean of both images' central differences: second-order accurate.
-        gx = 0.25 * (key_g[1:-1, 2:] - key_g[1:-1, :-2] + cur_g[1:-1, 2:] - cur_g[1:-1, :-2])[inner]
-        gy = 0.25 * (key_g[2:, 1:-1] - key_g[:-2, 1:-1] + cur_g[2:, 1:-1] - cur_g[:-2, 1:-1])[inner]
-        err = (cur_g[1:-1, 1:-1] - key_g[1:-1, 1:-1])[inner]
-        err = err - err.mean()  # an exposure change is not a shift
-        z = key_z[1:-1, 1:-1][inner]
-        z = z - z.mean()
-        if float(np.std(z)) < 0.5 * p.layer_min_gap_m:
-            return None
-        # cur(q) = key(q - d(q)), d = d0 + r z  =>  err ~ -grad . (d0 + r z).
-        a = np.stack([gx, gy, gx * z, gy * z], axis=1).astype(np.float64)
-        ata = a.T @ a
-        if np.linalg.eigvalsh(ata)[0] < 1e-9 * len(z):
-            return None
-        _, _, ru, rv = -np.linalg.solve(ata, a.T @ err.astype(np.float64))
-        # d s = -(t + theta x p) in cells of res: du grows by -theta_y z,
-        # dv by +theta_x z; r is in blocks of n cells per metre.
-        s = img.res_m * n
-        return np.array([rv * s, -ru * s, 0.0])
-
-
-@dataclass(frozen=True)
-class _DepthFit:
-    """Result of the depth step (Eq. 18 and the tilt of the differences)."""
-
-    tz_m: float  # camera translation along the key's optical axis
-    theta_rad: np.ndarray  # tilt of the depth differences as a rotation (x, y, 0)
-    z_mean_m: float  # mean key depth of the matched cells
-    matched: int  # matched cells (every other row and column)
-    var_z_m2: float  # scatter of the depth differences over the matched cells
 
 
 @dataclass(frozen=True)
@@ -298,7 +50,7 @@ class _Match:
 
     p_W_m: np.ndarray
     peak: Peak
-    depth: _DepthFit
+    depth: DepthFit
     theta_rad: np.ndarray  # residual rotation seen by the colour layers (0 if not measured)
     pose_var: np.ndarray  # (6,) in the world frame
 
@@ -313,41 +65,13 @@ class _Prev:
     t_s: float
     cloud: Cloud
     R_W_C: np.ndarray
-    base: "_Key | None"
+    base: "Key | None"
     d_W_m: np.ndarray
     var_W_m2: np.ndarray  # (3,) of the offset
 
     @property
     def p_W_m(self) -> np.ndarray:
         return self.d_W_m if self.base is None else self.base.p_W_m + self.d_W_m
-
-
-@dataclass
-class _OffsetCalibration:
-    """Online least squares for the attitude time offset.
-
-    A time error eps makes the residual rotation theta ~ eps * g, with g the
-    difference of the key's and the current frame's angular rates in key axes.
-    Each frame implies offset_true ~ offset_used - (g . theta) / |g|^2; the
-    estimate is the |g|^2-weighted mean of those with exponential forgetting.
-    """
-
-    forget: float
-    max_s: float
-    offset_s: float
-    num: float = 0.0
-    den: float = 0.0
-    n: int = 0
-
-    def update(self, g_rad_s: np.ndarray, theta_rad: np.ndarray) -> None:
-        g2 = float(g_rad_s @ g_rad_s)
-        if g2 < 0.05:  # below ~13 deg/s the residual says nothing about time
-            return
-        self.num = self.forget * self.num + g2 * self.offset_s - float(g_rad_s @ theta_rad)
-        self.den = self.forget * self.den + g2
-        self.n += 1
-        if self.n >= 20:
-            self.offset_s = float(np.clip(self.num / self.den, -self.max_s, self.max_s))
 
 
 class NislamTracker:
@@ -359,11 +83,11 @@ class NislamTracker:
         self.intr = intrinsics
         self.p = params
         self.shape = (params.grid_height, params.grid_width)
-        self._key: _Key | None = None
+        self._key: Key | None = None
         # The kept keys, and one more: a new key is made before the map lets
         # the least recently used one go.
-        self._store = _KeyStore(self.shape, max(params.map_keyframes, 1) + 1)
-        self._map: KeyframeMap[_Key] = KeyframeMap(
+        self._store = KeyStore(self.shape, max(params.map_keyframes, 1) + 1)
+        self._map: KeyframeMap[Key] = KeyframeMap(
             params.map_keyframes, on_evict=lambda key: self._store.give_back(key.slot))
         self._prev: _Prev | None = None
         self._next_key_id = 0
@@ -371,7 +95,7 @@ class NislamTracker:
         self._lost = False
         self._last_trusted_p: np.ndarray | None = None
         self._frame_count = 0
-        self._calib = _OffsetCalibration(
+        self._calib = OffsetCalibration(
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
         kern.warm_up()  # compile before the first frame, not during it
@@ -479,7 +203,7 @@ class NislamTracker:
 
     # ------------------------------------------------------------ matching
     def _match(
-        self, key: _Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
+        self, key: Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
         t_att: float,
     ) -> _Match | None:
         # The key's attitude is looked up again at the current offset estimate,
@@ -494,13 +218,13 @@ class NislamTracker:
         # stalled loop or dropped frames widen it instead of losing the key.
         radius_m = max(self.p.search_radius_m, self.p.search_speed_m_s * key.since_last_match_s(t_s))
         peak = find_peak(
-            key.filt.response(_whiten(img)), self.p.psr_exclude_cells, key.predicted_shift(t_s),
+            key.filt.response(whiten(img.gray, img.mask)), self.p.psr_exclude_cells, key.predicted_shift(t_s),
             max(3, int(radius_m / key.img.res_m)),
         )
         if not peak.psr >= self.p.psr_lost:  # also catches NaN
             return None
         du, dv = int(round(peak.du_cells)), int(round(peak.dv_cells))
-        depth = self._depth_translation(key, img, du, dv)
+        depth = depth_translation(key, img, du, dv, self.p)
         if depth is None:
             return None
         self._frame_count += 1
@@ -524,17 +248,17 @@ class NislamTracker:
         return _Match(p_W, peak, depth, theta_img, pose_var)
 
     def _reuse(
-        self, key: _Key, outcome: _Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
+        self, key: Key, outcome: _Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
         attitude: AttitudeSource, t_att: float,
-    ) -> tuple[_Key, _Match] | None:
+    ) -> tuple[Key, _Match] | None:
         """The match against the current key weakened (PSR < T_r) or failed:
         try the kept keys that look the same way from about the same place,
         and make the best one that matches at least as firmly as a fresh key
         would (PSR >= T_r) the current key again. A frame matched against both
         keys measures their offset: the key positions are refined from all
-        offsets measured so far (onboard.keymap)."""
+        offsets measured so far (onboard.nislam.keymap)."""
         p_guess = outcome.p_W_m if outcome is not None else self._prev.p_W_m  # type: ignore[union-attr]
-        best: tuple[_Key, _Match] | None = None
+        best: tuple[Key, _Match] | None = None
         for cand in self._map.candidates(
             r_cur, p_guess, key.keyframe_id, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
             self.p.reuse_candidates,
@@ -557,63 +281,9 @@ class NislamTracker:
         self._map.use(cand)
         return cand, dataclasses.replace(o, p_W_m=cand.p_W_m + d_cand)
 
-    def _depth_translation(
-        self, key: _Key, img: AxonometricImage, du: int, dv: int
-    ) -> _DepthFit | None:
-        """Eq. 18 with robust gating, plus the residual tilt.
-
-        Delta = D~ - D_key over cells seen in both whose gray agrees (T_c); the
-        depth gate is centred on the median rather than the previous t_z, which
-        lets fast z motion reject every cell (ref. pitfalls). Under a residual
-        rotation theta the differences form a plane,
-        Delta = -t_z - theta_x y + theta_y x, fitted in closed form from the
-        sums of onboard.kernels.depth_difference_sums (every other row and
-        column: a quarter of the cells fixes three parameters just as well).
-        """
-        s = key.img.res_m
-        sums = kern.depth_difference_sums(
-            key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
-            self.p.gate_gray, self.p.gate_depth_m, s, self.p.min_matched_cells // 16,
-        )
-        n = float(sums[kern.N])
-        if n < self.p.min_matched_cells:
-            return None
-        sum_d = float(sums[kern.SUM_D])
-        z_mean = float(sums[kern.SUM_ZKEY]) / n
-        # The authors' sigma_z^2 (ref. §10): scatter of Delta around its mean.
-        var_z = max(float(sums[kern.SUM_DD]) / n - (sum_d / n) ** 2, 0.0)
-        theta = np.zeros(3)
-
-        def fit(tz: float) -> _DepthFit:
-            return _DepthFit(float(tz), theta, z_mean, int(n), var_z)
-
-        if not self.p.depth_tilt_fit:
-            return fit(-sum_d / n)
-        # Normal equations of Delta ~ a + b (x - mx) + c (y - my), centred on
-        # the matched cells so a (their mean) stays well determined even when
-        # the overlap is a thin strip far from the axis.
-        mx, my = float(sums[kern.SUM_X]) / n, float(sums[kern.SUM_Y]) / n
-        sxy = float(sums[kern.SUM_XY]) - n * mx * my
-        ata = np.array([
-            [float(sums[kern.SUM_XX]) - n * mx * mx, sxy],
-            [sxy, float(sums[kern.SUM_YY]) - n * my * my],
-        ])
-        atb = np.array([float(sums[kern.SUM_DX]) - mx * sum_d, float(sums[kern.SUM_DY]) - my * sum_d])
-        try:
-            b, c = np.linalg.solve(ata, atb)
-        except np.linalg.LinAlgError:
-            return fit(-sum_d / n)
-        lim = self.p.depth_tilt_max_rad
-        theta[0] = np.clip(-c, -lim, lim)
-        theta[1] = np.clip(b, -lim, lim)
-        # -t_z is the plane's value on the key's optical axis (x = y = 0); the
-        # clipped tilt bounds how far a poor fit can move it from the mean.
-        tz = -sum_d / n + theta[1] * mx - theta[0] * my
-        return fit(tz)
-
     def _calibrate(
         self,
-        key: _Key,
+        key: Key,
         r_rel: np.ndarray,
         attitude: AttitudeSource,
         t_att: float,
@@ -624,19 +294,19 @@ class NislamTracker:
             self._calib.update(g[:2], theta_rad[:2])
 
     def _rate_difference(
-        self, key: _Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
+        self, key: Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
     ) -> np.ndarray | None:
-        """g = omega_key - R_rel omega_cur in key axes (rad/s), see _OffsetCalibration."""
-        w_cur = _body_rate(attitude, t_att, self.p.rate_half_window_s)
-        w_key = _body_rate(attitude, key.t_s + self._calib.offset_s, self.p.rate_half_window_s)
+        """g = omega_key - R_rel omega_cur in key axes (rad/s), see OffsetCalibration."""
+        w_cur = body_rate(attitude, t_att, self.p.rate_half_window_s)
+        w_key = body_rate(attitude, key.t_s + self._calib.offset_s, self.p.rate_half_window_s)
         if w_cur is None or w_key is None:
             return None
         return w_key - r_rel @ w_cur
 
-    def _refine(self, key: _Key, img: AxonometricImage, du: int, dv: int, tz: float) -> None:
+    def _refine(self, key: Key, img: AxonometricImage, du: int, dv: int, tz: float) -> None:
         """Count-weighted moving average of the key images (Eq. 19a/b), as an
         incremental mean: ref += (new - ref) * w_new / (W_k + w_new)."""
-        ks, cs = _overlap(self.shape, du, dv)
+        ks, cs = overlap(self.shape, du, dv)
         w_new = img.mask[cs]
         cnt = key.count[ks]
         cnt += w_new
@@ -692,9 +362,9 @@ class NislamTracker:
         img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True))
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
                                        slot.spectra)
-        filt.train(_whiten(img))
-        layers = _RotationResidual.train(img, p) if p.calibrate_time_offset else None
-        self._key = _Key(
+        filt.train(whiten(img.gray, img.mask))
+        layers = RotationResidual.train(img, p) if p.calibrate_time_offset else None
+        self._key = Key(
             keyframe_id=self._next_key_id,
             t_s=prev.t_s,
             p_W_m=np.array(prev.p_W_m, dtype=np.float64),
@@ -714,7 +384,7 @@ class NislamTracker:
             self._store.give_back(old.slot)
         return finished
 
-    def _key_cloud(self, key: _Key) -> KeyframeCloud:
+    def _key_cloud(self, key: Key) -> KeyframeCloud:
         """The key as it is now: copies, since a kept key may be refined and
         moved after the map consumer got it (same id: the newer one wins),
         and its slot is re-used for a later key."""
@@ -772,42 +442,3 @@ class NislamTracker:
         var_key = np.array([var_xy, var_xy, max(var_z_m2, 0.005**2)])
         rot = 2.0 * 4.592449e-6  # authors' fixed attitude variance (rad^2)
         return np.concatenate([(r_W_key * r_W_key) @ var_key, [rot, rot, rot]])
-
-
-def _whiten(img: AxonometricImage) -> np.ndarray:
-    """Zero-mean gray over filled cells, holes at 0: holes then carry no
-    pattern of their own (the authors fill them with 0.5, which correlates the
-    hole layout of the two images)."""
-    return _whiten_masked(img.gray, img.mask)
-
-
-def _whiten_masked(gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    n = float(mask.sum())
-    mean = float(np.vdot(gray, mask)) / n if n > 0 else 0.0
-    out = gray - np.float32(mean)
-    out *= mask
-    return out
-
-
-def _overlap(shape: tuple[int, int], du: int, dv: int):
-    """Slices (key, current) with current[p + d] aligned to key[p]: a zero-filled,
-    non-circular shift (ref. pitfalls: np.roll is wrong here)."""
-    h, w = shape
-    if abs(du) >= w or abs(dv) >= h:
-        return None, None
-    ky = slice(max(0, -dv), min(h, h - dv))
-    kx = slice(max(0, -du), min(w, w - du))
-    cy = slice(ky.start + dv, ky.stop + dv)
-    cx = slice(kx.start + du, kx.stop + du)
-    return (ky, kx), (cy, cx)
-
-
-def _body_rate(attitude: AttitudeSource, t_s: float, half_s: float) -> np.ndarray | None:
-    """Angular rate in the camera frame from two attitude look-ups (rad/s)."""
-    r0 = attitude.rotation_at(t_s - half_s)
-    r1 = attitude.rotation_at(t_s + half_s)
-    if r0 is None or r1 is None:
-        return None
-    return so3_log(r0.T @ r1) / (2.0 * half_s)
-
-

@@ -3,7 +3,7 @@
 The tracking loop holds one `Output` and calls it on every frame without
 asking which outputs are configured:
 
-    with make_outputs(cfg) as out:
+    with make_outputs(cfg.mavlink, cfg.zenoh) as out:
         for frame in frames:
             out.publish(tracker.track(frame, attitude))
         last = tracker.finish()
@@ -23,12 +23,11 @@ from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Protocol
 
-from onboard.frames import KeyframeCloud, TrackResult
-from onboard.health import HealthReport
+from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult
+from onboard.outputs.settings import MavlinkConfig, ZenohConfig
 
 if TYPE_CHECKING:
-    from onboard.config import Config
-    from onboard.mavlink_out import SharedLink
+    from onboard.outputs.mavlink import SharedLink
 
 log = logging.getLogger(__name__)
 
@@ -113,22 +112,23 @@ class OutputGroup:
         self.close()
 
 
-def make_outputs(cfg: Config, mavlink_link: SharedLink | None = None) -> OutputGroup:
-    """The outputs `cfg` enables ([mavlink] and [zenoh] `enabled`); an empty
+def make_outputs(mavlink: MavlinkConfig, zenoh: ZenohConfig,
+                 mavlink_link: SharedLink | None = None) -> OutputGroup:
+    """The outputs the sections enable ([mavlink] and [zenoh] `enabled`); an empty
     group (a null output) when none is. `mavlink_link`: the autopilot link
     when something else owns it (drivers.fc_link.FcLink); otherwise the
     MAVLink output opens [mavlink] connect itself. pymavlink and zenoh load
     only when their output is enabled."""
     outputs: list[Output] = []
     try:
-        if cfg.mavlink.enabled:
-            from onboard.mavlink_out import MavlinkOutput
+        if mavlink.enabled:
+            from onboard.outputs.mavlink import MavlinkOutput
 
-            outputs.append(MavlinkOutput(cfg.mavlink, link=mavlink_link))
-        if cfg.zenoh.enabled:
-            from onboard.zenoh_out import ZenohOutput
+            outputs.append(MavlinkOutput(mavlink, link=mavlink_link))
+        if zenoh.enabled:
+            from onboard.outputs.zenoh_out import ZenohOutput
 
-            outputs.append(ZenohOutput(cfg.zenoh))
+            outputs.append(ZenohOutput(zenoh))
     except BaseException:
         OutputGroup(outputs).close()
         raise

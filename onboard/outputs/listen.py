@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from onboard.config import ZenohConfig
-from onboard.mapcodec import MapCodecError, MapKeyframe, decode_keyframe
-from onboard.ply import write_ply
-from onboard.zenoh_out import key_prefix, open_session, session_config
+from onboard.outputs.mapcodec import MapCodecError, MapKeyframe, decode_keyframe
+from onboard.outputs.ply import write_ply
+from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.zenoh_out import key_prefix, open_session, session_config
 
 log = logging.getLogger(__name__)
 

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard import NislamError
-from onboard.frames import KeyframeCloud
+from onboard.core.messages import KeyframeCloud
 
 MAGIC = b"NSKF"
 VERSION = 1

@@ -4,56 +4,8 @@ Per tracked frame one ODOMETRY (or, selectable, VISION_POSITION_ESTIMATE +
 VISION_SPEED_ESTIMATE), a HEARTBEAT at 1 Hz from component 197 telling how
 tracking goes, a STATUSTEXT on every change of that, TIMESYNC answers and,
 optionally, the EKF origin and home once at start. Facts behind every field:
-../shared/docs/reference-flight-stack.md; the autopilot settings: README
-"Integrating with ArduPilot and PX4".
-
-Frames. The tracker reports the camera (optical frame C) in its world W, the
-AHRS world: gravity-aligned, z down, heading that of the AHRS. That is
-MAVLink's LOCAL_FRD (earth-fixed, z down, arbitrary heading), so the local
-frame L is W itself (`world_frame = "frd"`). A world with z up (a
-motion-capture world, e.g. TUM replays; `"flu"`) is turned into L by a
-half turn about x: R_L_W = diag(1, -1, -1). Then
-
-    position   p_L = R_L_W p_W                 the sensor's position: the
-               camera's offset on the body is left to the autopilot
-               (VISO_POS_*, EKF2_EV_POS_*), never applied twice
-    attitude   R_L_B = R_L_W R_W_C R_B_C^T     body FRD to L, sent as q (w, x, y, z)
-    velocity   v_B = R_L_B^T (p_L(k) - p_L(j)) / (t_k - t_j), body FRD, from
-               the pose up to `velocity_window_s` earlier in the same epoch;
-               NaN (unknown) on the first pose after a (re)start: both
-               stacks skip a NaN velocity
-    covariance diagonal of the 6x6 upper triangle, indices 0, 6, 11, 15, 18,
-               20: position variances rotated into L, attitude variances as
-               the tracker gives them; velocity variances propagated from
-               the two poses
-
-with R_B_C the camera mount (`mount`): "forward" (camera z = body x, camera
-x = body y, camera y = body z), "down" (camera z = body z, the image top
-towards the nose: camera y = -body x) or "custom" (`mount_q_B_C_xyzw`).
-
-Time. `time_usec` is the frame's capture time (`TrackResult.t_s`), on the
-host's monotonic clock when the frames come from the cameras (depthai stamps
-with it). TIMESYNC requests (tc1 = 0) are answered with the same clock in
-nanoseconds, so PX4 maps our stamps onto its own; ArduPilot jitter-corrects
-them. (On a recording the stamps are the recording's.)
-
-reset_counter (uint8, wraps) goes up by exactly one at the first pose after
-the tracker's own reset_counter changed, after a lost spell, or when the
-position steps further than `jump_m` faster than `jump_speed_m_s`. No pose is
-ever sent for a frame the tracker does not trust.
-
-State (HEARTBEAT system_status, quality):
-
-    BOOT      1   no tracker result yet
-    STANDBY   3   results, but no pose yet (initialising)       quality 0
-    ACTIVE    4   tracking, quality >= degraded_quality          1-100
-    CRITICAL  5   tracking, quality below it (back at +5)        1-100
-    FLIGHT_TERMINATION 8  lost, or no result for `stale_s`        -1
-
-When the onboard loop reports its health (`publish_health`, onboard/health.py:
-starting, tracking, degraded, lost, which also weighs sensor freshness and
-the fallback tracker), the HEARTBEAT carries that instead (STANDBY, ACTIVE,
-CRITICAL, FLIGHT_TERMINATION), and each change goes out as a STATUSTEXT.
+../shared/docs/reference-flight-stack.md; the autopilot settings:
+docs/autopilot.md. What the samples hold and when: onboard.outputs.mavlink_feed.
 
 Threads. `publish()` only appends the result to a bounded queue (the oldest
 is dropped when full) and wakes the sender thread, which owns the link:
@@ -68,14 +20,12 @@ sends through it and gets TIMESYNC requests from its reader thread.
 pymavlink picks MAVLink 1 or 2 when it is first imported, from the
 environment variable MAVLINK20; with MAVLink 1 ODOMETRY does not exist. This
 module imports pymavlink only inside `load_mavutil()`, which sets
-MAVLINK20=1 first, so importing onboard.mavlink_out has no side effect.
+MAVLINK20=1 first, so importing onboard.outputs.mavlink has no side effect.
 """
 
 from __future__ import annotations
 
-import enum
 import logging
-import math
 import os
 import threading
 import time
@@ -85,34 +35,31 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.config import MavlinkConfig
-from onboard.frames import KeyframeCloud, TrackResult, TrackState
-from onboard.geometry import so3_log
-from onboard.health import Health, HealthReport
+from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult
+from onboard.outputs.mavlink_feed import (
+    HEALTH_STATE,
+    MAV_AUTOPILOT_INVALID,
+    MAV_ESTIMATOR_TYPE_VIO,
+    MAV_FRAME_BODY_FRD,
+    MAV_FRAME_LOCAL_FRD,
+    MAV_TYPE_ONBOARD_CONTROLLER,
+    SEVERITY,
+    STATUSTEXT_LEN,
+    FeedEvent,
+    FeedState,
+    VisionFeed,
+    VisionSample,
+    diag_cov21,
+    euler_rpy,
+)
+from onboard.outputs.mavlink_origin import OriginHandshake
+from onboard.outputs.settings import MavlinkConfig
 
 log = logging.getLogger(__name__)
 
-# MAVLink constants (common.xml), named here so the pure part needs no pymavlink.
-MAV_FRAME_LOCAL_FRD = 20
-MAV_FRAME_BODY_FRD = 12
-MAV_ESTIMATOR_TYPE_VIO = 3
-MAV_TYPE_ONBOARD_CONTROLLER = 18
-MAV_AUTOPILOT_INVALID = 8
-MAV_SEVERITY_CRITICAL = 2
-MAV_SEVERITY_WARNING = 4
-MAV_SEVERITY_NOTICE = 5
-MAV_SEVERITY_INFO = 6
-STATUSTEXT_LEN = 50
 RX_POLL_S = 0.002  # how often our own link is read: TIMESYNC answers within ~2 ms
-QUALITY_HYSTERESIS = 5
-
-# Camera optical axes (columns) in body FRD.
-R_B_C_FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-R_B_C_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-R_L_W = {"frd": np.eye(3), "flu": np.diag([1.0, -1.0, -1.0])}
 
 
 def load_mavutil() -> Any:
@@ -134,268 +81,7 @@ def load_mavutil() -> Any:
     return mavutil
 
 
-def mount_rotation(mount: str, q_B_C_xyzw: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0)) -> np.ndarray:
-    """R_B_C for a mount preset, or the explicit quaternion for "custom"."""
-    if mount == "forward":
-        return R_B_C_FORWARD.copy()
-    if mount == "down":
-        return R_B_C_DOWN.copy()
-    if mount == "custom":
-        q = np.asarray(q_B_C_xyzw, dtype=np.float64)
-        if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-6:
-            raise NislamError(f"mount quaternion {tuple(q)} is not a rotation")
-        return Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
-    raise NislamError(f"unknown camera mount {mount!r} (forward, down, custom)")
-
-
-def q_wxyz(r: np.ndarray) -> np.ndarray:
-    """MAVLink quaternion (w, x, y, z) of a rotation matrix, w >= 0."""
-    x, y, z, w = Rotation.from_matrix(r).as_quat(canonical=True)
-    return np.array([w, x, y, z])
-
-
-def euler_rpy(r: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (Z-Y-X Tait-Bryan, as MAVLink's ATTITUDE) of R_L_B."""
-    pitch = -math.asin(max(-1.0, min(1.0, float(r[2, 0]))))
-    return np.array([math.atan2(r[2, 1], r[2, 2]), pitch, math.atan2(r[1, 0], r[0, 0])])
-
-
-def diag_cov21(var6: np.ndarray) -> list[float]:
-    """The 21-element upper triangle of a diagonal 6x6 covariance; NaN at
-    index 0 (= unknown) when any variance is not finite."""
-    cov = [0.0] * 21
-    if not np.all(np.isfinite(var6)):
-        cov[0] = math.nan
-        return cov
-    for value, index in zip(var6, (0, 6, 11, 15, 18, 20)):
-        cov[index] = float(value)
-    return cov
-
-
 # --------------------------------------------------------------------------- pure feed
-
-
-class FeedState(enum.Enum):
-    BOOT = 1  # values: MAV_STATE
-    STANDBY = 3
-    ACTIVE = 4
-    DEGRADED = 5  # MAV_STATE_CRITICAL
-    LOST = 8  # MAV_STATE_FLIGHT_TERMINATION
-
-    @property
-    def mav_state(self) -> int:
-        return self.value
-
-
-HEALTH_STATE = {  # onboard health -> the HEARTBEAT's system_status
-    Health.STARTING: FeedState.STANDBY,
-    Health.TRACKING: FeedState.ACTIVE,
-    Health.DEGRADED: FeedState.DEGRADED,
-    Health.LOST: FeedState.LOST,
-}
-
-_SEVERITY = {
-    FeedState.BOOT: MAV_SEVERITY_INFO,
-    FeedState.STANDBY: MAV_SEVERITY_INFO,
-    FeedState.ACTIVE: MAV_SEVERITY_INFO,
-    FeedState.DEGRADED: MAV_SEVERITY_WARNING,
-    FeedState.LOST: MAV_SEVERITY_CRITICAL,
-}
-
-
-@dataclass(frozen=True)
-class VisionSample:
-    """One frame's feed, in LOCAL_FRD (L) and body FRD (B); NaN = unknown."""
-
-    time_usec: int
-    p_L_m: np.ndarray  # (3,) sensor position
-    R_L_B: np.ndarray  # (3, 3)
-    v_B_m_s: np.ndarray  # (3,)
-    v_L_m_s: np.ndarray  # (3,)
-    w_B_rad_s: np.ndarray  # (3,) body rates
-    pose_var: np.ndarray  # (6,) x, y, z [m^2] in L; roll, pitch, yaw [rad^2]
-    twist_var_B: np.ndarray  # (6,) vx, vy, vz [(m/s)^2] in B; rates [(rad/s)^2]
-    v_var_L: np.ndarray  # (3,) [(m/s)^2] in L
-    reset_counter: int
-    quality: int
-
-    @property
-    def q_wxyz(self) -> np.ndarray:
-        return q_wxyz(self.R_L_B)
-
-
-@dataclass(frozen=True)
-class FeedEvent:
-    """What one result (or a silence) means for the link."""
-
-    sample: VisionSample | None  # a pose to send, or None
-    state: FeedState
-    changed: bool  # the state differs from the previous one
-    texts: tuple[tuple[int, str], ...] = ()  # (severity, STATUSTEXT) to send
-
-
-@dataclass
-class _Pose:
-    t_s: float
-    p_L: np.ndarray
-    R_L_B: np.ndarray
-    var: np.ndarray  # (6,)
-
-
-class VisionFeed:
-    """Tracker results in, the feed's samples and state out. Pure: no I/O,
-    no clock (time comes with the results), so it is tested on its own."""
-
-    def __init__(
-        self,
-        R_B_C: np.ndarray,
-        world_frame: str = "frd",
-        degraded_quality: int = 20,
-        jump_m: float = 0.1,
-        jump_speed_m_s: float = 10.0,
-        velocity_window_s: float = 0.1,
-    ) -> None:
-        self.R_C_B = np.asarray(R_B_C, dtype=np.float64).T
-        self.R_L_W = R_L_W[world_frame]
-        self.degraded_quality = degraded_quality
-        self.jump_m = jump_m
-        self.jump_speed_m_s = jump_speed_m_s
-        self.window_s = velocity_window_s
-        self.state = FeedState.BOOT
-        self.reset_counter = 0  # ours, as sent (uint8)
-        self.resets = 0
-        self._tracker_counter: int | None = None
-        self._pending_reset: str | None = None  # why the next pose bumps the counter
-        self._history: deque[_Pose] = deque()
-        self._had_pose = False
-        self._last_quality = 0
-
-    @classmethod
-    def from_config(cls, cfg: MavlinkConfig) -> VisionFeed:
-        return cls(
-            mount_rotation(cfg.mount, cfg.mount_q_B_C_xyzw), cfg.world_frame,
-            cfg.degraded_quality, cfg.jump_m, cfg.jump_speed_m_s, cfg.velocity_window_s,
-        )
-
-    @property
-    def quality(self) -> int:
-        """-1 lost, 0 starting, else the last pose's 1-100 (ODOMETRY.quality)."""
-        if self.state is FeedState.LOST:
-            return -1
-        if self.state in (FeedState.BOOT, FeedState.STANDBY):
-            return 0
-        return self._last_quality
-
-    def update(self, result: TrackResult) -> FeedEvent:
-        if self._tracker_counter is not None and result.reset_counter != self._tracker_counter:
-            self._pending_reset = self._pending_reset or "tracker reset"
-        self._tracker_counter = result.reset_counter
-        if not result.trusted or result.p_W_m is None or result.R_W_C is None:
-            return self._untrusted(result)
-        return self._trusted(result)
-
-    def stale(self, silence_s: float) -> FeedEvent | None:
-        """No result for `silence_s`: lost ("no frames"), once."""
-        if self.state in (FeedState.BOOT, FeedState.LOST):
-            return None
-        if self._had_pose:
-            self._pending_reset = self._pending_reset or "lost"
-        self._history.clear()
-        return self._enter(None, FeedState.LOST, f"lost: no frames for {silence_s:.1f} s")
-
-    # ------------------------------------------------------------------ steps
-    def _untrusted(self, result: TrackResult) -> FeedEvent:
-        if not self._had_pose and result.state is not TrackState.LOST:
-            return self._enter(None, FeedState.STANDBY, "initialising")
-        if self._had_pose:
-            self._pending_reset = self._pending_reset or "lost"
-        self._history.clear()
-        return self._enter(None, FeedState.LOST, f"lost: {result.lost_reason or 'untrusted'}")
-
-    def _trusted(self, result: TrackResult) -> FeedEvent:
-        p_L = self.R_L_W @ np.asarray(result.p_W_m, dtype=np.float64)
-        R_L_B = self.R_L_W @ np.asarray(result.R_W_C, dtype=np.float64) @ self.R_C_B
-        var = np.asarray(result.pose_var, dtype=np.float64).copy()
-        var[:3] = (self.R_L_W**2) @ var[:3]
-        pose = _Pose(result.t_s, p_L, R_L_B, var)
-        texts: list[tuple[int, str]] = []
-
-        jump = self._jump(pose)
-        if jump is not None:
-            self._pending_reset = self._pending_reset or jump
-        if self._pending_reset is not None:
-            if self._had_pose:
-                self.reset_counter = (self.reset_counter + 1) % 256
-                self.resets += 1
-                texts.append((MAV_SEVERITY_NOTICE,
-                              f"reset {self.reset_counter}: {self._pending_reset}"))
-            self._pending_reset = None
-            self._history.clear()
-
-        v_L, v_var_L, w_B, w_var = self._twist(pose)
-        self._history.append(pose)
-        self._had_pose = True
-        quality = int(min(100, max(1, result.quality)))
-        self._last_quality = quality
-        sample = VisionSample(
-            time_usec=max(0, int(round(result.t_s * 1e6))),
-            p_L_m=p_L,
-            R_L_B=R_L_B,
-            v_B_m_s=R_L_B.T @ v_L,
-            v_L_m_s=v_L,
-            w_B_rad_s=w_B,
-            pose_var=var,
-            twist_var_B=np.concatenate([(R_L_B.T**2) @ v_var_L, w_var]),
-            v_var_L=v_var_L,
-            reset_counter=self.reset_counter,
-            quality=quality,
-        )
-        state = self._tracking_state(quality)
-        word = "degraded" if state is FeedState.DEGRADED else "tracking"
-        event = self._enter(sample, state, f"{word}, quality {quality}")
-        if texts:
-            return FeedEvent(event.sample, event.state, event.changed, tuple(texts) + event.texts)
-        return event
-
-    def _tracking_state(self, quality: int) -> FeedState:
-        if self.state is FeedState.DEGRADED:
-            back = quality >= self.degraded_quality + QUALITY_HYSTERESIS
-            return FeedState.ACTIVE if back else FeedState.DEGRADED
-        return FeedState.DEGRADED if quality < self.degraded_quality else FeedState.ACTIVE
-
-    def _jump(self, pose: _Pose) -> str | None:
-        if not self._history:
-            return None
-        prev = self._history[-1]
-        step = float(np.linalg.norm(pose.p_L - prev.p_L))
-        dt = pose.t_s - prev.t_s
-        if step > self.jump_m and (dt <= 0 or step / dt > self.jump_speed_m_s):
-            return f"jump {step:.2f} m"
-        return None
-
-    def _twist(self, pose: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Velocity in L and body rates against the oldest pose of this epoch
-        at most `velocity_window_s` old, else the previous one; NaN when there
-        is none. Poses older than the one used are no longer needed."""
-        history = self._history
-        ref = next((p for p in history if pose.t_s - p.t_s <= self.window_s), None)
-        if ref is None and history:
-            ref = history[-1]
-        while history and history[0] is not ref:
-            history.popleft()
-        nan3 = np.full(3, np.nan)
-        dt = math.nan if ref is None else pose.t_s - ref.t_s
-        if not dt > 0:
-            return nan3, nan3, nan3, nan3
-        v_L = (pose.p_L - ref.p_L) / dt
-        w_B = so3_log(ref.R_L_B.T @ pose.R_L_B) / dt
-        return v_L, (pose.var[:3] + ref.var[:3]) / dt**2, w_B, (pose.var[3:] + ref.var[3:]) / dt**2
-
-    def _enter(self, sample: VisionSample | None, state: FeedState, text: str) -> FeedEvent:
-        changed = state is not self.state
-        self.state = state
-        texts = ((_SEVERITY[state], text),) if changed else ()
-        return FeedEvent(sample, state, changed, texts)
 
 
 # --------------------------------------------------------------------------- sender
@@ -459,9 +145,7 @@ class MavlinkOutput:
         self._spell: tuple[float, int] | None = None  # (start, errors) of a failure spell
         self._next_heartbeat = 0.0
         self._last_result_at: float | None = None
-        self._origin_tries = 0
-        self._origin_done = not cfg.set_origin
-        self._next_origin = 0.0
+        self._origin = OriginHandshake(cfg)
         self._shared = link
         self._rx: deque[Any] = deque(maxlen=64)  # messages a shared link handed over
         self._health: FeedState | None = None  # the loop's health, when it reports one
@@ -493,7 +177,7 @@ class MavlinkOutput:
         self._health = state  # one attribute store: atomic; the sender reads it
         if report.changed:
             self._health_texts.append(
-                (_SEVERITY[state], f"{report.state.value}: {report.reason}", state)
+                (SEVERITY[state], f"{report.state.value}: {report.reason}", state)
             )
         self._wake()
 
@@ -584,15 +268,16 @@ class MavlinkOutput:
                 self._handle(event)
         if now >= self._next_heartbeat:
             self._heartbeat()
-        if not self._origin_done and self._link_open and now >= self._next_origin:
-            self._send_origin(now)
+        if self._link_open and self._origin.due(now):
+            for name, args in self._origin.messages(now, self._clock_ns() // 1000):
+                self._send(name, *args)
 
     def _wait(self, now: float) -> None:
         deadlines = [self._next_heartbeat]
         if not self._link_open:
             deadlines.append(self._next_open)
-        elif not self._origin_done:
-            deadlines.append(self._next_origin)
+        elif not self._origin.done:
+            deadlines.append(self._origin.next_s)
         watching = self.feed.state not in (FeedState.BOOT, FeedState.LOST)
         if watching and self._last_result_at is not None:
             deadlines.append(self._last_result_at + self.cfg.stale_s + 1e-3)
@@ -715,9 +400,8 @@ class MavlinkOutput:
             if self._send("timesync", self._clock_ns(), msg.ts1):
                 with self._lock:
                     self._stats.timesync_replies += 1
-        elif kind == "GPS_GLOBAL_ORIGIN" and not self._origin_done:
-            self._origin_done = True
-            log.info("autopilot confirmed the EKF origin")
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            self._origin.on_confirmed()
 
     # ------------------------------------------------------------- messages
     def _handle(self, event: FeedEvent) -> None:
@@ -773,18 +457,3 @@ class MavlinkOutput:
         if self._send("statustext", severity, data):
             with self._lock:
                 self._stats.statustexts += 1
-
-    def _send_origin(self, now: float) -> None:
-        """SET_GPS_GLOBAL_ORIGIN + SET_HOME_POSITION, repeated each second until
-        the autopilot answers GPS_GLOBAL_ORIGIN (5 tries at most)."""
-        c = self.cfg
-        lat, lon, alt = round(c.origin_lat_deg * 1e7), round(c.origin_lon_deg * 1e7), round(
-            c.origin_alt_m * 1e3)
-        t_us = self._clock_ns() // 1000
-        self._send("set_gps_global_origin", c.system_id, lat, lon, alt, t_us)
-        self._send("set_home_position", c.system_id, lat, lon, alt, 0.0, 0.0, 0.0,
-                   [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_us)
-        self._origin_tries += 1
-        self._next_origin = now + 1.0
-        if self._origin_tries >= 5:
-            self._origin_done = True

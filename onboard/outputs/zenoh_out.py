@@ -21,7 +21,7 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         map held (map_keyframes, map_points, map_bytes),
                         dropped_poses, dropped_keyframes, errors, uptime_s.
     map/keyframe/<id>   each finished key frame, binary: the encoding of
-                        onboard/mapcodec.py (encoding
+                        onboard/outputs/mapcodec.py (encoding
                         "application/octet-stream;nislam-keyframe/1").
                         A key the tracker re-uses is published again when
                         it is left (refined, possibly moved): the newest
@@ -60,11 +60,10 @@ import zenoh
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.config import ZenohConfig
-from onboard.frames import KeyframeCloud, TrackResult, TrackState
-from onboard.health import HealthReport
-from onboard.mapcodec import ENCODING as KEYFRAME_ENCODING
-from onboard.mapcodec import MapKeyframe, encode_keyframe
+from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, TrackState
+from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
+from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe
+from onboard.outputs.settings import ZenohConfig
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,284 @@
+"""What a configuration value may be: ranges, choices and checks by qualified
+key, each violation one line naming the key.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.oak import IMU_WORLDS, STEREO_PRESETS
+from onboard.app.config_sections import AHRS_SOURCES
+from onboard.fusion.registry import TRACKER_NAMES
+from onboard.outputs.settings import MAVLINK_MESSAGES, MOUNT_NAMES, WORLD_FRAMES, ZENOH_MODES
+
+
+@dataclass(frozen=True)
+class Range:
+    """A numeric interval; `None` bounds are open-ended."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def violation(self, value: Any) -> str | None:
+        lo_ok = self.lo is None or (value > self.lo if self.lo_open else value >= self.lo)
+        hi_ok = self.hi is None or (value < self.hi if self.hi_open else value <= self.hi)
+        if lo_ok and hi_ok:
+            return None
+        if self.hi is None:
+            return f"must be {'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.lo is None:
+            return f"must be {'<' if self.hi_open else '<='} {self.hi:g}"
+        left, right = "(" if self.lo_open else "[", ")" if self.hi_open else "]"
+        return f"must be in {left}{self.lo:g}, {self.hi:g}{right}"
+
+
+@dataclass(frozen=True)
+class Choice:
+    options: tuple[str, ...]
+
+    def violation(self, value: Any) -> str | None:
+        if value in self.options:
+            return None
+        return f"must be one of {', '.join(repr(o) for o in self.options)}"
+
+
+@dataclass(frozen=True)
+class Check:
+    """Any other rule: `problem(value)` returns what is wrong, or None."""
+
+    problem: Callable[[Any], str | None]
+
+    def violation(self, value: Any) -> str | None:
+        return self.problem(value)
+
+
+_MAVLINK_HOST_PORT = re.compile(r"^(udp|udpin|udpout|udpbcast|tcp|tcpin|mcast):[^:]*:\d{1,5}$")
+
+
+_ZENOH_ENDPOINT = re.compile(r"^[a-z0-9]+/\S+$")
+
+
+_KEY_CHUNK = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def _mavlink_connect_problem(value: str) -> str | None:
+    """pymavlink connection strings: `udpout:HOST:PORT`, `tcp:HOST:PORT`, ...,
+    or a serial device with an optional `,BAUD`."""
+    if not value.strip():
+        return "must not be empty"
+    scheme = value.split(":", 1)[0]
+    if ":" in value and scheme in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin", "mcast"):
+        if not _MAVLINK_HOST_PORT.match(value):
+            return f"must look like '{scheme}:HOST:PORT'"
+    return None
+
+
+def _zenoh_endpoints_problem(value: tuple[str, ...]) -> str | None:
+    bad = [v for v in value if not _ZENOH_ENDPOINT.match(v)]
+    return f"holds {bad[0]!r}: endpoints look like 'tcp/HOST:PORT'" if bad else None
+
+
+def _key_chunk_problem(value: str) -> str | None:
+    if _KEY_CHUNK.match(value):
+        return None
+    return "must be one zenoh key chunk: letters, digits, '_', '-', '.'"
+
+
+def _unit_quaternion_problem(value: tuple[float, ...]) -> str | None:
+    norm = math.sqrt(sum(v * v for v in value))
+    return None if abs(norm - 1.0) < 1e-3 else f"must be a unit quaternion (norm {norm:.4g})"
+
+
+POSITIVE = Range(lo=0.0, lo_open=True)
+
+
+NON_NEGATIVE = Range(lo=0.0)
+
+
+SHARE = Range(lo=0.0, hi=1.0, lo_open=True)  # (0, 1]
+
+
+FRACTION = Range(lo=0.0, hi=1.0)  # [0, 1]
+
+
+ANY = Range()
+
+
+# Range rules by qualified key. Keys not listed fall back to DEFAULT_RULES by
+# type (ints >= 0; floats only need to be finite, which the type check does).
+RULES: dict[str, Range | Choice | Check] = {
+    "replay.assoc_max_dt_s": POSITIVE,
+    "replay.gt_max_gap_s": NON_NEGATIVE,
+    "attitude.noise_deg": NON_NEGATIVE,
+    "attitude.bias_deg_per_sqrt_s": NON_NEGATIVE,
+    "attitude.offset_ms": ANY,
+    "attitude.seed": NON_NEGATIVE,  # numpy's default_rng rejects negative seeds
+    "tracker.name": Choice(TRACKER_NAMES),
+    # sizes and counts
+    "nislam.grid_width": POSITIVE,
+    "nislam.grid_height": POSITIVE,
+    "nislam.len_hist": POSITIVE,
+    "nislam.hist_sample": POSITIVE,
+    "nislam.pixel_stride": POSITIVE,
+    "nislam.min_matched_cells": POSITIVE,
+    "nislam.psr_exclude_cells": NON_NEGATIVE,
+    # shares and fractions
+    "nislam.adaptive_mu": SHARE,
+    "nislam.min_valid_fraction": FRACTION,
+    "nislam.time_offset_forget": SHARE,
+    "nislam.layer_min_cover": SHARE,
+    # lengths and scales
+    "nislam.max_distance_m": POSITIVE,
+    "nislam.min_depth_m": NON_NEGATIVE,
+    "nislam.max_depth_m": POSITIVE,
+    "nislam.kernel_sigma": POSITIVE,
+    "nislam.lam": POSITIVE,  # ridge term of Eq. 12: 0 divides by the kernel spectrum alone
+    "nislam.label_sigma_cells": NON_NEGATIVE,  # 0 = the paper's delta label
+    "nislam.rate_half_window_s": POSITIVE,
+    "nislam.search_radius_m": NON_NEGATIVE,
+    "nislam.search_speed_m_s": NON_NEGATIVE,
+    "nislam.max_coast_s": NON_NEGATIVE,
+    "nislam.reuse_max_angle_deg": Range(lo=0.0, hi=90.0),  # optical axes apart by 90 deg share no view
+    "nislam.reuse_max_dist_m": NON_NEGATIVE,
+    "nislam.reuse_reset_jump_m": NON_NEGATIVE,
+    # thresholds
+    "nislam.psr_keyframe": NON_NEGATIVE,
+    "nislam.psr_refine": NON_NEGATIVE,
+    "nislam.psr_lost": NON_NEGATIVE,
+    "nislam.gate_gray": POSITIVE,
+    "nislam.gate_depth_m": POSITIVE,
+    "nislam.depth_tilt_max_rad": NON_NEGATIVE,
+    "nislam.time_offset_s": ANY,
+    "nislam.time_offset_max_s": NON_NEGATIVE,
+    # FastORB (onboard/fastorb/); other ints >= 0, other floats finite
+    "fastorb.clahe_clip_limit": POSITIVE,
+    "fastorb.clahe_tiles": POSITIVE,
+    "fastorb.orb_features": POSITIVE,
+    "fastorb.orb_scale_factor": Range(lo=1.0, lo_open=True),
+    "fastorb.orb_levels": POSITIVE,
+    "fastorb.uam_accel_gain": FRACTION,
+    "fastorb.lk_win_px": Range(lo=3),
+    "fastorb.lk_max_iter": POSITIVE,
+    "fastorb.lk_eps_px": POSITIVE,
+    "fastorb.lk_max_error": POSITIVE,
+    "fastorb.lk_min_eigen": NON_NEGATIVE,
+    "fastorb.gms_grid_cols": POSITIVE,
+    "fastorb.gms_grid_rows": POSITIVE,
+    "fastorb.gms_alpha": NON_NEGATIVE,
+    "fastorb.epipolar_threshold_px": POSITIVE,
+    "fastorb.epipolar_confidence": Range(0.0, 1.0, lo_open=True, hi_open=True),
+    "fastorb.pnp_reprojection_px": POSITIVE,
+    "fastorb.pnp_iterations": POSITIVE,
+    "fastorb.pnp_confidence": Range(0.0, 1.0, lo_open=True, hi_open=True),
+    "fastorb.pnp_huber_px": NON_NEGATIVE,
+    "fastorb.pnp_sigma_gate": NON_NEGATIVE,
+    "fastorb.pnp_min_gate_px": POSITIVE,
+    "fastorb.rgbd_bf_px": NON_NEGATIVE,
+    "fastorb.rgbd_max_depth_m": POSITIVE,
+    "fastorb.landmark_max_sd_m": POSITIVE,
+    "fastorb.max_jump_m": POSITIVE,
+    "fastorb.max_jump_deg": POSITIVE,
+    "fastorb.min_depth_m": NON_NEGATIVE,
+    "fastorb.max_depth_m": POSITIVE,
+    "fastorb.depth_edge_rel": POSITIVE,
+    "fastorb.min_point_distance_px": POSITIVE,
+    "fastorb.map_track_every": POSITIVE,
+    "fastorb.map_track_radius_px": POSITIVE,
+    "fastorb.min_inliers": Range(lo=6),  # PnP needs at least 6 points
+    "fastorb.keyframe_max_frames": POSITIVE,
+    "fastorb.keyframe_inlier_ratio": FRACTION,
+    "fastorb.local_map_keyframes": POSITIVE,
+    "fastorb.max_keyframes": POSITIVE,
+    "fastorb.match_radius_px": POSITIVE,
+    "fastorb.match_max_hamming": Range(0, 256),
+    "fastorb.reloc_ratio": SHARE,
+    "fastorb.reloc_min_inliers": Range(lo=6),
+    # outputs: MAVLink
+    "mavlink.connect": Check(_mavlink_connect_problem),
+    "mavlink.baud": POSITIVE,
+    "mavlink.system_id": Range(1, 255),
+    "mavlink.component_id": Range(1, 255),
+    "mavlink.message": Choice(MAVLINK_MESSAGES),
+    "mavlink.mount": Choice(MOUNT_NAMES),
+    "mavlink.mount_q_B_C_xyzw": Check(_unit_quaternion_problem),
+    "mavlink.world_frame": Choice(WORLD_FRAMES),
+    "mavlink.degraded_quality": Range(0, 100),
+    "mavlink.jump_m": NON_NEGATIVE,
+    "mavlink.jump_speed_m_s": POSITIVE,
+    "mavlink.velocity_window_s": NON_NEGATIVE,
+    "mavlink.heartbeat_period_s": POSITIVE,
+    "mavlink.stale_s": POSITIVE,
+    "mavlink.reconnect_s": POSITIVE,
+    "mavlink.queue_frames": POSITIVE,
+    "mavlink.origin_lat_deg": Range(-90.0, 90.0),
+    "mavlink.origin_lon_deg": Range(-180.0, 180.0),
+    "mavlink.origin_alt_m": ANY,
+    # outputs: zenoh
+    "zenoh.vehicle": Check(_key_chunk_problem),
+    "zenoh.mode": Choice(ZENOH_MODES),
+    "zenoh.connect": Check(_zenoh_endpoints_problem),
+    "zenoh.listen": Check(_zenoh_endpoints_problem),
+    "zenoh.status_period_s": POSITIVE,
+    "zenoh.queue_frames": POSITIVE,
+    "zenoh.map_max_mb": POSITIVE,
+    # drivers and recording
+    "ahrs.source": Choice(AHRS_SOURCES),
+    "ahrs.buffer_samples": Range(lo=2),
+    "ahrs.max_age_s": POSITIVE,
+    "ahrs.max_gap_s": POSITIVE,
+    "myahrs.port": Check(lambda v: None if v.strip() else "must not be empty"),
+    "myahrs.baud": POSITIVE,
+    "myahrs.divider": Range(1, 100),
+    "myahrs.latency_ms": ANY,
+    "myahrs.q_B_A_xyzw": Check(_unit_quaternion_problem),
+    "myahrs.silence_s": POSITIVE,
+    "myahrs.reopen_s": POSITIVE,
+    "myahrs.reconnect_max_s": POSITIVE,
+    "autopilot.rate_hz": Range(0.0, 1000.0, lo_open=True),
+    "autopilot.target_component": Range(0, 255),
+    "autopilot.latency_ms": ANY,
+    "autopilot.q_B_A_xyzw": Check(_unit_quaternion_problem),
+    "autopilot.retry_s": POSITIVE,
+    "autopilot.clock_window_s": POSITIVE,
+    "oak.width": POSITIVE,
+    "oak.height": POSITIVE,
+    "oak.fps": POSITIVE,
+    "oak.mono_width": POSITIVE,
+    "oak.mono_height": POSITIVE,
+    "oak.stereo_preset": Choice(STEREO_PRESETS),
+    "oak.imu_rate_hz": Range(1, 400),
+    "oak.imu_world": Choice(IMU_WORLDS),
+    "oak.imu_q_B_A_xyzw": Check(_unit_quaternion_problem),
+    "oak.search_s": POSITIVE,
+    "oak.frame_timeout_s": POSITIVE,
+    "oak.reconnect_max_s": POSITIVE,
+    "record.png_compression": Range(0, 9),
+    "record.queue_frames": POSITIVE,
+    "record.start_timeout_s": POSITIVE,
+    "service.fallback_tracker": Choice(("",) + tuple(n for n in TRACKER_NAMES if n != "nislam")),
+    "service.return_after_s": NON_NEGATIVE,
+    "service.frame_timeout_s": POSITIVE,
+    "service.degraded_gap_s": POSITIVE,
+    "service.start_grace_s": POSITIVE,
+    "service.recover_s": NON_NEGATIVE,
+    "service.poll_s": Range(0.001, 1.0),
+    "service.attitude_wait_s": Range(0.0, 1.0),
+    "service.stats_period_s": POSITIVE,
+    "service.replay_speed": Range(0.01, 100.0),
+}
+
+
+DEFAULT_RULES: dict[type, Range] = {int: NON_NEGATIVE, float: ANY}
+
+
+# Pairs that must satisfy first < second; checked only when both fields exist.
+ORDERED: tuple[tuple[str, str], ...] = (
+    ("nislam.min_depth_m", "nislam.max_depth_m"),
+    ("fastorb.min_depth_m", "fastorb.max_depth_m"),
+)

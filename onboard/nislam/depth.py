@@ -1,0 +1,81 @@
+"""Depth translation of NI-SLAM (Eq. 18): the camera's motion along the key's
+optical axis from the depth differences of well-matched cells, with the tilt of
+those differences (the residual rotation the depth image shows).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.nislam import kernels as kern
+from onboard.nislam.keys import Key
+from onboard.nislam.params import NislamParams
+from onboard.nislam.projection import AxonometricImage
+
+
+@dataclass(frozen=True)
+class DepthFit:
+    """Result of the depth step (Eq. 18 and the tilt of the differences)."""
+
+    tz_m: float  # camera translation along the key's optical axis
+    theta_rad: np.ndarray  # tilt of the depth differences as a rotation (x, y, 0)
+    z_mean_m: float  # mean key depth of the matched cells
+    matched: int  # matched cells (every other row and column)
+    var_z_m2: float  # scatter of the depth differences over the matched cells
+
+
+def depth_translation(
+    key: Key, img: AxonometricImage, du: int, dv: int, p: NislamParams
+) -> DepthFit | None:
+    """Eq. 18 with robust gating, plus the residual tilt.
+
+    Delta = D~ - D_key over cells seen in both whose gray agrees (T_c); the
+    depth gate is centred on the median rather than the previous t_z, which
+    lets fast z motion reject every cell (ref. pitfalls). Under a residual
+    rotation theta the differences form a plane,
+    Delta = -t_z - theta_x y + theta_y x, fitted in closed form from the
+    sums of onboard.nislam.kernels.depth_difference_sums (every other row and
+    column: a quarter of the cells fixes three parameters just as well).
+    """
+    s = key.img.res_m
+    sums = kern.depth_difference_sums(
+        key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
+        p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16,
+    )
+    n = float(sums[kern.N])
+    if n < p.min_matched_cells:
+        return None
+    sum_d = float(sums[kern.SUM_D])
+    z_mean = float(sums[kern.SUM_ZKEY]) / n
+    # The authors' sigma_z^2 (ref. §10): scatter of Delta around its mean.
+    var_z = max(float(sums[kern.SUM_DD]) / n - (sum_d / n) ** 2, 0.0)
+    theta = np.zeros(3)
+
+    def fit(tz: float) -> DepthFit:
+        return DepthFit(float(tz), theta, z_mean, int(n), var_z)
+
+    if not p.depth_tilt_fit:
+        return fit(-sum_d / n)
+    # Normal equations of Delta ~ a + b (x - mx) + c (y - my), centred on
+    # the matched cells so a (their mean) stays well determined even when
+    # the overlap is a thin strip far from the axis.
+    mx, my = float(sums[kern.SUM_X]) / n, float(sums[kern.SUM_Y]) / n
+    sxy = float(sums[kern.SUM_XY]) - n * mx * my
+    ata = np.array([
+        [float(sums[kern.SUM_XX]) - n * mx * mx, sxy],
+        [sxy, float(sums[kern.SUM_YY]) - n * my * my],
+    ])
+    atb = np.array([float(sums[kern.SUM_DX]) - mx * sum_d, float(sums[kern.SUM_DY]) - my * sum_d])
+    try:
+        b, c = np.linalg.solve(ata, atb)
+    except np.linalg.LinAlgError:
+        return fit(-sum_d / n)
+    lim = p.depth_tilt_max_rad
+    theta[0] = np.clip(-c, -lim, lim)
+    theta[1] = np.clip(b, -lim, lim)
+    # -t_z is the plane's value on the key's optical axis (x = y = 0); the
+    # clipped tilt bounds how far a poor fit can move it from the mean.
+    tz = -sum_d / n + theta[1] * mx - theta[0] * my
+    return fit(tz)

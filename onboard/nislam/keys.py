@@ -1,0 +1,130 @@
+"""NI-SLAM key frames: the learned filter, refined images and pose of a key, and
+the memory every key lives in, allocated once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.nislam.calibration import RotationResidual
+from onboard.nislam.correlation import KernelCorrelationFilter
+from onboard.nislam.projection import AxonometricImage
+
+
+@dataclass
+class KeySlot:
+    """The memory of one key frame: its projection, the refined images and
+    the filter's spectra (6 MB at 480 x 360), allocated once by `KeyStore`."""
+
+    gray: np.ndarray
+    depth_m: np.ndarray
+    mask: np.ndarray
+    bgr: np.ndarray
+    gray_ref: np.ndarray
+    depth_ref: np.ndarray
+    count: np.ndarray
+    spectra: tuple[np.ndarray, np.ndarray]  # conj(z_hat), alpha_hat
+
+    @classmethod
+    def allocate(cls, shape: tuple[int, int]) -> "KeySlot":
+        h, w = shape
+
+        def resident(a: np.ndarray) -> np.ndarray:
+            a.fill(0)  # written now, so the pages are resident from the start
+            return a
+
+        def grid() -> np.ndarray:
+            return resident(np.empty(shape, np.float32))
+
+        def spectrum() -> np.ndarray:
+            return resident(np.empty((h, w // 2 + 1), np.complex64))
+
+        return cls(grid(), grid(), grid(), resident(np.empty((h, w, 3), np.uint8)), grid(),
+                   grid(), grid(), (spectrum(), spectrum()))
+
+    def hold(self, img: AxonometricImage) -> AxonometricImage:
+        """`img` copied into this slot; the refined images start from it."""
+        np.copyto(self.gray, img.gray)
+        np.copyto(self.depth_m, img.depth_m)
+        np.copyto(self.mask, img.mask)
+        if img.bgr is not None:
+            np.copyto(self.bgr, img.bgr)
+        else:
+            self.bgr.fill(0)  # not the colour of the slot's previous key
+        np.copyto(self.gray_ref, img.gray)
+        np.copyto(self.depth_ref, img.depth_m)
+        np.copyto(self.count, img.mask)
+        return AxonometricImage(self.gray, self.depth_m, self.mask, img.res_m, self.bgr)
+
+
+class KeyStore:
+    """Memory for the key frames the tracker can hold at once (the kept keys
+    and the one being made), allocated when the tracker is built. Key frames
+    then never allocate: the process is at its working size from the first
+    frame, so a long flight cannot creep towards the companion computer's
+    memory limit, and a soak shows any real leak plainly."""
+
+    def __init__(self, shape: tuple[int, int], slots: int) -> None:
+        self._free = [KeySlot.allocate(shape) for _ in range(slots)]
+
+    def take(self) -> KeySlot:
+        if not self._free:
+            raise RuntimeError("key store exhausted: a key frame was not given back")
+        return self._free.pop()
+
+    def give_back(self, slot: KeySlot) -> None:
+        self._free.append(slot)
+
+
+@dataclass
+class Key:
+    """Key frame state: the learned filter, the refined images and the pose.
+    The arrays live in `slot` (see KeyStore)."""
+
+    keyframe_id: int
+    t_s: float
+    p_W_m: np.ndarray
+    R_W_C: np.ndarray
+    img: AxonometricImage  # the key's projection, held in `slot`
+    filt: KernelCorrelationFilter
+    slot: KeySlot
+    layers: "RotationResidual | None" = None
+    shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
+
+    @property
+    def gray_ref(self) -> np.ndarray:
+        """Refined gray (count-weighted mean, Eq. 19a)."""
+        return self.slot.gray_ref
+
+    @property
+    def depth_ref(self) -> np.ndarray:
+        """Refined depth."""
+        return self.slot.depth_ref
+
+    @property
+    def count(self) -> np.ndarray:
+        """W_k of Eq. 19b."""
+        return self.slot.count
+
+    @property
+    def mask0(self) -> np.ndarray:
+        """Original key mask W_0."""
+        return self.slot.mask
+
+    def predicted_shift(self, t_s: float) -> tuple[float, float]:
+        """Constant-velocity prediction of the shift at `t_s` against this key,
+        in time rather than frames: after dropped frames it moves as far as
+        the camera did."""
+        if not self.shifts:
+            return (0.0, 0.0)
+        t1, u1, v1 = self.shifts[-1]
+        if len(self.shifts) == 1:
+            return (u1, v1)
+        t0, u0, v0 = self.shifts[-2]
+        k = (t_s - t1) / (t1 - t0) if t1 > t0 else 1.0
+        return (u1 + k * (u1 - u0), v1 + k * (v1 - v0))
+
+    def since_last_match_s(self, t_s: float) -> float:
+        return t_s - (self.shifts[-1][0] if self.shifts else self.t_s)

@@ -1,0 +1,52 @@
+"""NI-SLAM tracker parameters (the `[nislam]` configuration section).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class NislamParams:
+    """Tracker parameters; defaults are the tuned values (see config/*.toml comments)."""
+
+    grid_width: int = 480
+    grid_height: int = 360
+    adaptive_mu: float = 0.8  # share of points the key grid must hold (ref. §3; all launches: 0.8)
+    max_distance_m: float = 4.0
+    len_hist: int = 50
+    hist_sample: int = 5
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    pixel_stride: int = 2  # every 2nd pixel: ~1 point per cell at 1.5 m, a quarter of the work
+    kernel_sigma: float = 0.2
+    lam: float = 0.1
+    label_sigma_cells: float = 1.0
+    psr_exclude_cells: int = 5  # sidelobe excludes an 11x11 window around the peak
+    psr_keyframe: float = 30.0  # T_r of Eq. 17
+    psr_refine: float = 100.0  # refine the key only on confident matches (ref. §8: 100)
+    psr_lost: float = 6.0  # below this the match is not trusted
+    min_valid_fraction: float = 0.05  # of grid cells covered by the current cloud
+    gate_gray: float = 0.1  # |C~ - C_key| for a well-matched cell (Eq. 18, T_c)
+    gate_depth_m: float = 0.1  # |Delta - median| for a well-matched cell
+    min_matched_cells: int = 200
+    search_radius_m: float = 0.1  # peak search window around the predicted shift ...
+    search_speed_m_s: float = 1.5  # ... widened to this speed times the time since the last match
+    max_coast_s: float = 1.0  # frames without a trusted pose for longer than this: restart (reset)
+    map_keyframes: int = 16  # keys kept for re-use (onboard/nislam/keymap.py); 0: every new key is new
+    reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
+    reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
+    reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
+    reuse_reset_jump_m: float = 0.05  # a re-use moving the position this much beyond what it may have flown: reset
+    depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
+    depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
+    calibrate_time_offset: bool = True  # estimate the attitude time offset online
+    calibrate_every_n_frames: int = 4  # residual-rotation fit for the calibration on every n-th frame
+    calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
+    layer_min_gap_m: float = 0.2  # depth relief (2 x std) the residual rotation needs
+    layer_downsample: int = 4  # the residual rotation is fitted on blocks of n x n cells
+    layer_min_cover: float = 0.2  # a block takes part when this share of its cells is filled in both
+    time_offset_s: float = 0.0  # initial attitude time offset: attitude is queried at t + offset
+    time_offset_max_s: float = 0.1
+    time_offset_forget: float = 0.999  # per-update forgetting: a hardware constant, ~1000 updates of memory
+    rate_half_window_s: float = 0.02  # angular rate from attitude at t +- this

@@ -1,0 +1,60 @@
+"""The outputs' configuration sections: `[mavlink]` (the vision-position feed)
+and `[zenoh]` (pose, status and map publishing, `nislam listen`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+MOUNT_NAMES = ("forward", "down", "custom")
+
+
+WORLD_FRAMES = ("frd", "flu")
+
+
+MAVLINK_MESSAGES = ("odometry", "vision_position")
+
+
+ZENOH_MODES = ("peer", "client", "router")
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    """The vision-position feed to the flight controller (onboard/outputs/mavlink.py)."""
+
+    enabled: bool = False
+    connect: str = "udpout:127.0.0.1:14550"  # pymavlink connection string
+    baud: int = 921600  # serial baud rate unless `connect` names one ("/dev/ttyAMA0,921600")
+    system_id: int = 1  # our MAVLink system id: the vehicle's (the autopilot's) id
+    component_id: int = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+    message: str = "odometry"  # or "vision_position" (VISION_POSITION/SPEED_ESTIMATE)
+    mount: str = "forward"  # camera mount R_B_C: "forward", "down" or "custom"
+    mount_q_B_C_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)  # "custom"
+    world_frame: str = "frd"  # axes of the tracker world W: "frd" (z down) or "flu" (z up)
+    degraded_quality: int = 20  # tracking below this quality is "degraded" (CRITICAL)
+    jump_m: float = 0.1  # a step longer than this ...
+    jump_speed_m_s: float = 10.0  # ... and faster than this is a jump: reset_counter + 1
+    velocity_window_s: float = 0.1  # velocity from poses up to this far apart
+    heartbeat_period_s: float = 1.0
+    stale_s: float = 0.5  # no tracker result for this long = lost ("no frames")
+    reconnect_s: float = 1.0  # retry a link that failed after this long
+    queue_frames: int = 8  # results waiting for the sender; the oldest is dropped
+    set_origin: bool = False  # send SET_GPS_GLOBAL_ORIGIN and SET_HOME_POSITION at start
+    origin_lat_deg: float = 0.0
+    origin_lon_deg: float = 0.0
+    origin_alt_m: float = 0.0  # above mean sea level
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """Pose, status and map publishing (onboard/outputs/zenoh_out.py) and `nislam listen`."""
+
+    enabled: bool = False
+    vehicle: str = "drone1"  # keys live under nislam/<vehicle>/
+    mode: str = "peer"  # zenoh session mode: "peer", "client" or "router"
+    connect: tuple[str, ...] = ()  # endpoints to connect to, e.g. "tcp/192.168.1.10:7447"
+    listen: tuple[str, ...] = ()  # endpoints to listen on, e.g. "tcp/0.0.0.0:7447"
+    multicast_scouting: bool = False  # find peers by UDP multicast (off: explicit endpoints)
+    status_period_s: float = 1.0
+    queue_frames: int = 32  # poses waiting for the publisher; the oldest is dropped
+    map_max_mb: float = 512.0  # key frames kept for late joiners; the oldest go first
