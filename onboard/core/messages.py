@@ -1,6 +1,6 @@
 """Small typed messages shared by sources, trackers and outputs.
 
-Conventions (see README "Frames"): camera optical frame C (x right, y down,
+Conventions (see docs/frames.md): camera optical frame C (x right, y down,
 z forward); transforms named R_<to>_<from>; quaternions carry their order in
 the name (`q_xyzw` as TUM/scipy, `q_wxyz` as MAVLink).
 """

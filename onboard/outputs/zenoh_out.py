@@ -9,7 +9,7 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         pitch, yaw rad^2), quality, psr, keyframe_id,
                         reset_counter, lost_reason; the pose fields are null
                         when the frame is not trusted. W is the tracker's
-                        world, C the camera optical frame (README "Frames").
+                        world, C the camera optical frame (docs/frames.md).
     status              every `status_period_s` (and at once when the loop's
                         health changes), JSON: state (the onboard loop's
                         health: "starting", "tracking", "degraded", "lost",
