@@ -95,6 +95,11 @@ def _unit_quaternion_problem(value: tuple[float, ...]) -> str | None:
     return None if abs(norm - 1.0) < 1e-3 else f"must be a unit quaternion (norm {norm:.4g})"
 
 
+def _dir_problem(value: str) -> str | None:
+    """A directory path or "" (the default place); created when missing."""
+    return "must not hold a NUL character" if "\0" in value else None
+
+
 POSITIVE = Range(lo=0.0, lo_open=True)
 
 
@@ -219,6 +224,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "mavlink.origin_lat_deg": Range(-90.0, 90.0),
     "mavlink.origin_lon_deg": Range(-180.0, 180.0),
     "mavlink.origin_alt_m": ANY,
+    "mavlink.state_dir": Check(_dir_problem),
     # outputs: zenoh
     "zenoh.vehicle": Check(_key_chunk_problem),
     "zenoh.mode": Choice(ZENOH_MODES),

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,10 @@ class Sources:
     sequence: Any = None  # sim_replay.tum.Sequence
     attitude_label: str = ""
     looped: bool = False  # a replay played back and forth: its poses map to no ground truth
+    # Frame stamps -> host monotonic time [s] when the stamps are not on that
+    # clock (a replay keeps the recording's); None: they are.
+    host_time_s: Callable[[float], float] | None = None
+    host_mapping: Callable[[], dict[str, float] | None] | None = None  # for metrics.json
 
     def start(self) -> None:
         self.runner.start()
@@ -69,4 +74,5 @@ def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
     cfg = dataclasses.replace(cfg, mavlink=mav)
     label = f"replay of {rp.seq.path}" + (f" ({passes} passes)" if passes > 1 else "")
     return Sources(label, rp.camera, rp.buffer, rp, sequence=rp.seq if passes == 1 else None,
-                   attitude_label=rp.attitude_label, looped=passes > 1), cfg
+                   attitude_label=rp.attitude_label, looped=passes > 1,
+                   host_time_s=rp.clock.host_time_s, host_mapping=rp.clock.host_mapping), cfg
