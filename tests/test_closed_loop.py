@@ -95,3 +95,30 @@ def test_the_feed_follows_the_vehicle_it_steers(flight: str, tmp_path: Path) -> 
     assert metrics["ate_rmse_m"] <= ATE_BAR_M[flight]
     # Moved as flown: the feed spans the flight, not a hover.
     assert np.ptp(est[:, :2], axis=0).max() > 0.5
+
+
+def test_the_vehicles_start_becomes_the_ekf_origin(tmp_path: Path) -> None:
+    """Without [mavlink] set_origin the vehicle's first reported position is
+    offered as the EKF origin, until the autopilot confirms it."""
+    port = free_port()
+    vehicle = JsonLinesProcess(python_script(
+        VEHICLE, f"udpin:127.0.0.1:{port}", "--flight", "circle", "--seconds", "0.5"))
+    vehicle.wait_for(lambda ls: any(m.get("ready") for m in ls), 60, "vehicle ready")
+    cfg = tmp_path / "origin.toml"
+    cfg.write_text(PROFILE.format(state=tmp_path / "state"))
+    svc = JsonLinesProcess([str(NISLAM), "run", "--sim-follow", "circle", "--mavlink",
+                            f"udpout:127.0.0.1:{port}", "--config", str(cfg),
+                            "--out", str(tmp_path / "out")])
+    try:
+        vehicle.wait_for(lambda ls: any(m.get("mavpackettype") == "SET_GPS_GLOBAL_ORIGIN"
+                                        for m in ls), 120, "the origin")
+        vehicle.wait_for(lambda ls: any(m.get("done") for m in ls), 120, "the flight")
+    finally:
+        assert svc.stop() == 0, svc.stderr[-2000:]
+        vehicle.stop()
+    origins = [m for m in vehicle.lines if m.get("mavpackettype") == "SET_GPS_GLOBAL_ORIGIN"]
+    assert len(origins) == 1  # confirmed at once: not repeated
+    o = origins[0]
+    # vehicle_sim.py starts at ArduPilot's CMAC home (lat/lon degE7, alt mm)
+    assert (o["latitude"], o["longitude"]) == (-353632621, 1491652374)
+    assert abs(o["altitude"] - 584000) <= 1

@@ -106,7 +106,8 @@ def follow_sources(cfg: Config, name: str) -> Sources:
     [mavlink] link (SIM_STATE or HIL_STATE_QUATERNION, requested with
     SET_MESSAGE_INTERVAL), the camera and AHRS rendered from it in real time
     (sim_replay.follow). The MAVLink feed shares the link, so the simulated
-    autopilot flies on our poses; the camera's truth is scored at the end."""
+    autopilot flies on our poses; the camera's truth is scored at the end.
+    Without [mavlink] set_origin the vehicle's start becomes the EKF origin."""
     from drivers.message_interval import MessageInterval
     from onboard.app.hardware import camera_mount_q, make_attitude_buffer, make_fc_link
     from onboard.core.rotations import mount_rotation
@@ -129,6 +130,10 @@ def follow_sources(cfg: Config, name: str) -> Sources:
         threads.append(MessageInterval(link, sf.request, sf.state_rate_hz,
                                        target_system=m.system_id,
                                        target_component=sf.target_component))
+    if not m.set_origin:  # the EKF needs one: the vehicle's start (onboard.app.sim_origin)
+        from onboard.app.sim_origin import OriginFromVehicle
+
+        threads.append(OriginFromVehicle(link, fol.track, m))
     threads += [fol.ahrs, fol.camera]
     return Sources(fol.label, fol.camera, buffer, ThreadGroup(threads), link=link,
                    sequence=fol.truth, attitude_label=f"simulated AHRS ({sf.ahrs_profile})")

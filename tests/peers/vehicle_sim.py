@@ -13,9 +13,11 @@ then `--seconds` of the flight, then hovering at its end. Its NED position is th
 minus the flight's start (so its first state is the flight's start pose
 seen from the EKF origin), about ArduPilot's CMAC home.
 
+SET_GPS_GLOBAL_ORIGIN is answered with GPS_GLOBAL_ORIGIN, as ArduPilot does.
+
 stdout, one JSON object a line: {"ready": true}; {"flight_start": T} (the
-monotonic time [s] of the flight's t = 0); every ODOMETRY, HEARTBEAT and
-STATUSTEXT received as {"t": receive time, "mavpackettype": ..., fields};
+monotonic time [s] of the flight's t = 0); every ODOMETRY, HEARTBEAT,
+STATUSTEXT and SET_GPS_GLOBAL_ORIGIN received as {"t": receive time, "mavpackettype": ..., fields};
 {"done": true} after the flight. Stops on SIGTERM/SIGINT.
 """
 
@@ -34,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 HOME_LAT_E7, HOME_LON_E7, HOME_ALT_M = -353632621, 1491652374, 584.0  # ArduPilot CMAC
 M_PER_DEG_E7 = 0.011131884502145034  # ArduPilot's LOCATION_SCALING_FACTOR
-REPORT = ("ODOMETRY", "HEARTBEAT", "STATUSTEXT")
+REPORT = ("ODOMETRY", "HEARTBEAT", "STATUSTEXT", "SET_GPS_GLOBAL_ORIGIN")
 
 
 def main() -> int:
@@ -88,6 +90,9 @@ def main() -> int:
                     t_next = time.monotonic()
                 interval_s = msg.param2 * 1e-6
             elif kind in REPORT:
+                if kind == "SET_GPS_GLOBAL_ORIGIN":  # as ArduPilot: confirm it
+                    conn.mav.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude,
+                                                    msg.time_usec)
                 if kind == "ODOMETRY" and t_start is None:
                     t_start = time.monotonic() + args.hover_s
                     print(json.dumps({"flight_start": t_start}), flush=True)
