@@ -43,6 +43,7 @@ from onboard.core.sources import DriverThread, FrameSlot
 from onboard.core.trajectory import Trajectory
 from sim_replay.attitude import AttitudeErrorModel
 from sim_replay.flights import SCENARIOS, Flight, scenario
+from sim_replay.follow_render import RenderProcess, RenderSpec, prepare_textures
 from sim_replay.follow_state import VehicleTrack
 from sim_replay.render import Renderer
 from sim_replay.scene import SCENES, make_scene
@@ -102,23 +103,40 @@ class FollowCamera(DriverThread):
     def __init__(self, track: VehicleTrack, scene_name: str, camera: CameraModel,
                  R_B_C: np.ndarray, hz: float = 30.0, seed: int = 0,
                  depth: DepthSensorModel | None = None, pixel_noise_dn: float = 2.0,
+                 texture_cache: Path | None = None, separate_process: bool = False,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         super().__init__(f"follow_camera:{scene_name}")
         self.track = track
         self.camera = camera
         self.R_B_C = np.asarray(R_B_C, dtype=np.float64)
         self.period_ns = int(round(1e9 / hz))
-        self.renderer = Renderer(make_scene(scene_name), camera.intrinsics(), seed=seed)
-        for i in range(len(self.renderer.scene.surfaces)):
-            self.renderer.texture(i)  # every texture now (seconds), not mid-flight
         self.depth = depth or DepthSensorModel()
-        self.noise = ColourNoise((camera.height, camera.width), pixel_noise_dn, seed)
+        self.renderer: Renderer | None = None
+        self._proc: RenderProcess | None = None
+        if separate_process:  # the world's renderer off the tracker's core and GIL
+            d = self.depth
+            self._proc = RenderProcess(RenderSpec(
+                scene_name, camera.width, camera.height, camera.fx, camera.fy, camera.cx,
+                camera.cy, seed, None if texture_cache is None else str(texture_cache),
+                d.sigma_m_per_m2, d.min_range_m, d.max_range_m, d.edge_rel, d.edge_width_px,
+                d.dropout, pixel_noise_dn))
+        else:
+            self.renderer = Renderer(make_scene(scene_name), camera.intrinsics(), seed=seed)
+            prepare_textures(self.renderer, texture_cache)  # every texture now, not mid-flight
+            self.noise = ColourNoise((camera.height, camera.width), pixel_noise_dn, seed)
         self.seed = seed
         self.clock_ns = clock_ns
         self.slot = FrameSlot()
         self.stats = FollowStats()
         self._truth_lock = threading.Lock()
         self._truth: list[tuple[float, np.ndarray, np.ndarray]] = []
+
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        ended = super().stop(timeout_s)
+        if self._proc is not None and ended:
+            self._proc.close()
+            self._proc = None
+        return ended
 
     # -- CameraSource
     def wait_camera(self, timeout_s: float) -> CameraModel | None:
@@ -169,13 +187,18 @@ class FollowCamera(DriverThread):
         if pose is None:
             self.stats.no_state += 1
             return
-        t0 = time.thread_time()
         R_W_C = pose.R_W_B @ self.R_B_C
-        view = self.renderer.render(R_W_C, pose.p_W_m)
-        rng = np.random.default_rng([self.seed, 1, k])
-        depth_m = measure_depth(view.depth_m, self.depth, rng)
-        bgr = self.noise.apply(view.bgr, rng)
-        self.stats.render_ms.append((time.thread_time() - t0) * 1e3)
+        if self._proc is not None:
+            bgr, depth_m, ms = self._proc.render(k, R_W_C, pose.p_W_m)
+        else:
+            assert self.renderer is not None
+            t0 = time.thread_time()
+            view = self.renderer.render(R_W_C, pose.p_W_m)
+            rng = np.random.default_rng([self.seed, 1, k])
+            depth_m = measure_depth(view.depth_m, self.depth, rng)
+            bgr = self.noise.apply(view.bgr, rng)
+            ms = (time.thread_time() - t0) * 1e3
+        self.stats.render_ms.append(ms)
         q = np.asarray(matrix_to_quat(R_W_C), dtype=np.float64)
         with self._truth_lock:
             self._truth.append((t_ns * 1e-9, pose.p_W_m.copy(), q))
@@ -281,13 +304,15 @@ def open_follow(name: str, *, R_B_C: np.ndarray, q_B_C_xyzw: tuple[float, ...],
                 camera_hz: float = 30.0, ahrs_profile_name: str = "perfect",
                 ahrs_hz: float = 100.0, start_height_m: float = 0.1,
                 position_tau_s: float = 0.5, seed: int = 0,
-                anchor_file: Path | None = None) -> Follow:
+                anchor_file: Path | None = None, texture_cache: Path | None = None,
+                render_process: bool = False) -> Follow:
     """The camera and AHRS of `--sim-follow NAME`, reading one `VehicleTrack`
     (feed it with `track.push_message(msg, t_ns)`)."""
     scene, flight, start = start_of(name, start_height_m)
     track = VehicleTrack(start, position_tau_s, anchor_file)
     cam_model = follow_camera_model(width, height, q_B_C_xyzw)
-    camera = FollowCamera(track, scene, cam_model, R_B_C, camera_hz, seed)
+    camera = FollowCamera(track, scene, cam_model, R_B_C, camera_hz, seed,
+                          texture_cache=texture_cache, separate_process=render_process)
     prof = ahrs_profile(ahrs_profile_name)
     errors = AttitudeErrorModel(prof["noise_deg"], prof["bias_deg_per_sqrt_s"],
                                 prof["offset_ms"], seed=seed)

@@ -135,3 +135,35 @@ def test_simulated_ahrs_errors() -> None:
     dropping = FollowAhrs(track, lambda s: None, AhrsModel(100.0, dropout=0.5), seed=2)
     kept = sum(dropping._measure(k * 10**7) is not None for k in range(1, 41))
     assert 8 < kept < 32
+
+
+def test_the_render_process_renders_what_the_thread_does() -> None:
+    """`[sim_follow] render_process`: the same frame (bytes) from the worker
+    process as from the in-thread renderer; the textures come from the cache
+    (the session's, which the closed-loop services share)."""
+    from onboard.app.sources import cache_directory
+    from onboard.core.rotations import matrix_to_quat, mount_rotation
+    from sim_replay.follow import FollowCamera, follow_camera_model
+
+    cache = cache_directory()
+
+    R_B_C = mount_rotation("forward")
+    cam = follow_camera_model(160, 120, matrix_to_quat(R_B_C))
+    track = VehicleTrack(np.array([0.0, -0.4, -1.3]))
+    track.push_message(at_ned(0, 0, 0, q=(math.cos(0.4), 0, 0, math.sin(0.4))), 0)
+    pose = track.pose_at(0)
+    frames = []
+    for separate in (False, True):
+        camera = FollowCamera(track, "room", cam, R_B_C, texture_cache=cache,
+                              separate_process=separate)
+        try:
+            camera._capture(0, 7)
+        finally:
+            camera.stop()
+        got = camera.slot.take(0, 0.0)
+        assert got is not None
+        frames.append(got[1])
+    assert list(cache.glob("textures-room-*.npz"))
+    assert np.array_equal(frames[0].bgr, frames[1].bgr)
+    assert np.array_equal(frames[0].depth_m, frames[1].depth_m)
+    assert (frames[0].depth_m > 0).mean() > 0.5  # a real view of the room

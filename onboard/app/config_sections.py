@@ -143,3 +143,4 @@ class SimFollowConfig:
     start_height_m: float = 0.1  # the vehicle's first state is this high above the floor
     position_tau_s: float = 0.5  # smoothing of the reported position's lat/lon steps
     seed: int = 0  # textures and sensor noise
+    render_process: bool = False  # render in a worker process of its own (off the tracker's GIL)

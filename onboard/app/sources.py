@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,6 +102,16 @@ class ThreadGroup:
 SIM_FOLLOW_ANCHOR_FILE = "sim_follow_anchor.json"
 
 
+def cache_directory(env: dict[str, str] | None = None) -> Path:
+    """Rebuildable files (the synthetic scenes' textures): systemd's
+    $CACHE_DIRECTORY, else $XDG_CACHE_HOME/nislam, else ~/.cache/nislam."""
+    env = dict(os.environ) if env is None else env
+    if env.get("CACHE_DIRECTORY"):
+        return Path(env["CACHE_DIRECTORY"].split(":")[0])
+    base = env.get("XDG_CACHE_HOME") or str(Path(env.get("HOME", "~")).expanduser() / ".cache")
+    return Path(base) / "nislam"
+
+
 def follow_sources(cfg: Config, name: str) -> Sources:
     """`--sim-follow NAME`: the vehicle's true state from the simulator on the
     [mavlink] link (SIM_STATE or HIL_STATE_QUATERNION, requested with
@@ -122,7 +133,8 @@ def follow_sources(cfg: Config, name: str) -> Sources:
         sink=buffer.push, width=sf.width, height=sf.height, camera_hz=sf.camera_hz,
         ahrs_profile_name=sf.ahrs_profile, ahrs_hz=sf.ahrs_hz, start_height_m=sf.start_height_m,
         position_tau_s=sf.position_tau_s, seed=sf.seed,
-        anchor_file=state_directory(m.state_dir) / SIM_FOLLOW_ANCHOR_FILE)
+        anchor_file=state_directory(m.state_dir) / SIM_FOLLOW_ANCHOR_FILE,
+        texture_cache=cache_directory(), render_process=sf.render_process)
     link = make_fc_link(cfg)
     link.add_listener(fol.track.push_message, STATE_TYPES)
     threads: list[Any] = [link]

@@ -7,7 +7,8 @@ Waits for MAV_CMD_SET_MESSAGE_INTERVAL asking for SIM_STATE (108), acks it,
 then streams SIM_STATE at the requested rate as SITL fills it (quaternion
 and body rates, NED velocity, lat/lon as degE7 both in the float fields and
 in lat_int/lon_int, alt in m), flying the named flight of
-sim_replay.flights: hovering at its start pose until the first ODOMETRY
+sim_replay.flights (or `guided`: landed, a take-off to 1 m, a 2 m move north):
+hovering at its start pose until the first ODOMETRY
 arrives and `--hover-s` longer (a pilot takes off once the feed is there),
 then `--seconds` of the flight, then hovering at its end. Its NED position is the flight's position
 minus the flight's start (so its first state is the flight's start pose
@@ -52,9 +53,22 @@ def main() -> int:
     from pymavlink import mavutil
     from scipy.spatial.transform import Rotation
 
-    from sim_replay.flights import Flight, scenario
+    from sim_replay.flights import Flight, Scenario, scenario
 
-    flight = Flight(scenario(args.flight))
+    def _smooth(x: np.ndarray) -> np.ndarray:
+        x = np.clip(x, 0.0, 1.0)
+        return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)  # C2: no step in the tilt
+
+    def _guided(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """SITL's acceptance flight in small: landed 2 s, take off to 1 m in
+        2 s, hover 2 s, 2 m north in 4 s, hover; nose north."""
+        x = 2.0 * _smooth((t - 6.0) / 4.0)
+        z = -1.0 * _smooth((t - 2.0) / 2.0)
+        return np.stack([x, np.zeros_like(x), z], axis=1), np.zeros_like(x)
+
+    scen = (Scenario("guided", "room", "take-off, hover, 2 m north", _guided)
+            if args.flight == "guided" else scenario(args.flight))
+    flight = Flight(scen)
     p0 = flight.position([0.0])[0]
 
     def state(t_s: float) -> tuple:
