@@ -306,6 +306,8 @@ class Service:
             "periods": list(s.periods),
             **s.frame_ms.stats(),
         }
+        if self.sources.source_stats is not None:
+            metrics["source_stats"] = self.sources.source_stats()
         if self.sources.host_mapping is not None:
             # The MAVLink feed's time_usec is on the host's monotonic clock; the
             # trajectories keep the recording's stamps: how one maps onto the other.

@@ -35,6 +35,7 @@ class Sources:
     # clock (a replay keeps the recording's); None: they are.
     host_time_s: Callable[[float], float] | None = None
     host_mapping: Callable[[], dict[str, float] | None] | None = None  # for metrics.json
+    source_stats: Callable[[], dict[str, Any]] | None = None  # the source's own, for metrics.json
 
     def start(self) -> None:
         self.runner.start()
@@ -148,4 +149,5 @@ def follow_sources(cfg: Config, name: str) -> Sources:
         threads.append(OriginFromVehicle(link, fol.track, m))
     threads += [fol.ahrs, fol.camera]
     return Sources(fol.label, fol.camera, buffer, ThreadGroup(threads), link=link,
-                   sequence=fol.truth, attitude_label=f"simulated AHRS ({sf.ahrs_profile})")
+                   sequence=fol.truth, attitude_label=f"simulated AHRS ({sf.ahrs_profile})",
+                   source_stats=fol.stats)

@@ -95,7 +95,10 @@ def main() -> int:
     done = False
     lon_scale = math.cos(math.radians(HOME_LAT_E7 * 1e-7))
     while not stop:
-        conn.select(0.002)
+        # Sleep until the next state is due (or a message arrives): a busy
+        # peer would take the CPU the service under test needs.
+        wait_s = 0.02 if interval_s is None else min(0.02, max(0.0, t_next - time.monotonic()))
+        conn.select(wait_s)
         while (msg := conn.recv_msg()) is not None:
             kind = msg.get_type()
             if kind == "COMMAND_LONG" and msg.command == 511 and int(msg.param1) == 108:
