@@ -63,6 +63,7 @@ log = logging.getLogger(__name__)
 SCENE_START_FLIGHT = {"room": "circle", "corridor": "corridor"}
 DEPTH_SCALE = 5000.0  # as the synthetic recordings (only the camera model carries it)
 LATE_PERIODS = 3  # capture times up to this many periods past are still rendered (a queue of 3)
+CATCH_UP_S = 1.0  # AHRS samples up to this far past are still sent after a stall
 
 
 def start_of(name: str, height_m: float) -> tuple[str, str, np.ndarray]:
@@ -245,7 +246,11 @@ class FollowAhrs(DriverThread):
                 self.published += 1
             t_next += self.period_ns
             now = self.clock_ns()
-            if now - t_next > 10 * self.period_ns:  # the machine stalled: no catching up
+            # After a stall every missed sample still comes, late (the track
+            # keeps the history), as a serial AHRS's lines wait in the port: a
+            # gap would leave the frames in it without attitude. Only a stall
+            # beyond the history is skipped.
+            if now - t_next > CATCH_UP_S * 1e9:
                 t_next = now
 
     def _measure(self, t_ns: int) -> AttitudeSample | None:

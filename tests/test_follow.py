@@ -167,3 +167,34 @@ def test_the_render_process_renders_what_the_thread_does() -> None:
     assert np.array_equal(frames[0].bgr, frames[1].bgr)
     assert np.array_equal(frames[0].depth_m, frames[1].depth_m)
     assert (frames[0].depth_m > 0).mean() > 0.5  # a real view of the room
+
+
+def test_the_simulated_ahrs_catches_up_after_a_stall() -> None:
+    """A stall (here: the sink blocks 0.3 s) delays samples, never drops
+    them: a gap would leave the frames in it without attitude ("no
+    attitude", a reset of the feed)."""
+    import threading
+    import time
+
+    track = VehicleTrack(np.zeros(3))
+    track.push_message(at_ned(0, 0, 0), time.monotonic_ns())
+    stamps: list[int] = []
+    done = threading.Event()
+
+    def sink(sample) -> None:
+        stamps.append(sample.t_ns)
+        if len(stamps) == 5:
+            time.sleep(0.3)
+        if len(stamps) >= 60:
+            done.set()
+
+    # Keep the vehicle's state fresh (a state older than 0.5 s gives no pose).
+    ahrs = FollowAhrs(track, sink, AhrsModel(100.0))
+    ahrs.start()
+    try:
+        while not done.wait(0.05):
+            track.push_message(at_ned(0, 0, 0), time.monotonic_ns())
+    finally:
+        ahrs.stop()
+    gaps_ms = np.diff(stamps[:60]) * 1e-6
+    assert gaps_ms.max() < 10.5 and gaps_ms.min() > 9.5  # every 10 ms, none missing
