@@ -15,6 +15,7 @@ prediction of the state between two 50 Hz reports).
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -125,3 +126,19 @@ def test_the_vehicles_start_becomes_the_ekf_origin(tmp_path: Path) -> None:
     # vehicle_sim.py starts at ArduPilot's CMAC home (lat/lon degE7, alt mm)
     assert (o["latitude"], o["longitude"]) == (-353632621, 1491652374)
     assert abs(o["altitude"] - 584000) <= 1
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--sim-follow", "room"], "--sim-follow needs the simulator's MAVLink link"),
+    (["--sim-follow", "garage", "--mavlink", "udpout:127.0.0.1:9"], "unknown scene or flight"),
+    (["--sim-follow", "room", "--mavlink", "udpout:127.0.0.1:9", "--camera-size", "640"],
+     "--camera-size must look like 640x480"),
+    (["--sim-follow", "room", "--mavlink", "udpout:127.0.0.1:9", "--ahrs-profile", "gyro"],
+     "sim_follow.ahrs_profile"),
+    (["--sim", "hover", "--ahrs-profile", "myahrs"], "go with --sim-follow"),
+])
+def test_sim_follow_refuses_bad_use_with_one_line(argv: list[str], says: str) -> None:
+    proc = subprocess.run([str(NISLAM), "run", *argv], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and says in proc.stderr, proc.stderr
