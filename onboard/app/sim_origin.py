@@ -9,7 +9,8 @@ first reported position (the point placed at the scene's start): the
 vehicle's true position relative to the EKF origin is then its position in
 the scene relative to the start. SET_GPS_GLOBAL_ORIGIN goes out through the
 shared link, each second until the autopilot answers GPS_GLOBAL_ORIGIN, 5
-tries at most (the same handshake the MAVLink output uses).
+tries at most (the same handshake the MAVLink output uses), and again on
+every new connection of the link (a restarted simulator has no origin).
 """
 
 from __future__ import annotations
@@ -61,12 +62,16 @@ class OriginFromVehicle(DriverThread):
         assert a is not None  # set with the first state
         cfg = dataclasses.replace(self.cfg, set_origin=True, origin_lat_deg=a.lat_e7 * 1e-7,
                                   origin_lon_deg=a.lon_e7 * 1e-7, origin_alt_m=a.alt_m)
-        hs = self.handshake = OriginHandshake(cfg)
         log.info("sim-follow: offering the vehicle's start as the EKF origin (%.7f, %.7f, %.2f m)",
                  cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_alt_m)
-        while not hs.done and not self.stopping:
+        generation = -1
+        while not self.stopping:
+            if self.link.generation != generation:  # a new connection: a restarted simulator
+                generation = self.link.generation
+                self.handshake = OriginHandshake(cfg)
+            hs = self.handshake
             now = time.monotonic()
-            if hs.due(now):
+            if hs is not None and hs.due(now):
                 for name, args in hs.messages(now, time.monotonic_ns() // 1000):
                     self.link.send(lambda mav, n=name, a=args: getattr(mav, n + "_send")(*a))
             if self._sleep(0.05):
