@@ -184,6 +184,12 @@ class FcLink(DriverThread):
             log.debug("%s: cannot open: %s", self.connect, e)
             self.counters.bump(open_failures=1)
             return None
+        # pymavlink reports a TCP peer that closed (an autopilot or SITL
+        # restarting) with print() and, without autoreconnect, keeps reading
+        # the dead socket for ever: make it an error the reader reopens on.
+        if hasattr(conn, "handle_eof"):
+            conn.handle_eof = _raise_closed
+            conn.handle_disconnect = _raise_closed
         with self._write_lock:
             self._conn = conn
         self.generation += 1
@@ -217,6 +223,10 @@ class FcLink(DriverThread):
             except Exception:  # noqa: BLE001 - a faulty listener must not take the link down
                 self.counters.bump(callback_errors=1)
                 log.exception("%s: listener failed on %s", self.connect, kind)
+
+
+def _raise_closed() -> None:
+    raise ConnectionResetError("closed by the peer")
 
 
 def _close_quietly(conn: Any) -> None:

@@ -129,6 +129,16 @@ class Renderer:
             self.texture_build_s += time.thread_time() - t0
         return tex
 
+    def built_textures(self) -> dict[int, list[np.ndarray]]:
+        """The mip chains built so far, by surface index (to keep on disk)."""
+        return {i: t.levels for i, t in self._textures.items()}
+
+    def adopt_textures(self, levels_by_surface: dict[int, list[np.ndarray]]) -> None:
+        """Use mip chains built earlier for this scene, seed and texel size
+        (sim_replay.follow keeps them on disk: building the room's takes seconds)."""
+        for i, levels in levels_by_surface.items():
+            self._textures[int(i)] = _SurfaceTexture(list(levels), self.texel_m)
+
     # ---------------------------------------------------------------- render
 
     def render(self, R_W_C: np.ndarray, p_W_m: np.ndarray, with_ids: bool = False

@@ -2,7 +2,8 @@
 through the same interfaces as the hardware drivers.
 
 - `ReplayClock` maps our monotonic clock onto the recording's time base, so
-  replayed stamps stay the recording's own.
+  replayed stamps stay the recording's own (`host_time_s` maps them back:
+  the MAVLink feed stamps on the host's clock).
 - `ReplayCamera` is a `onboard.core.sources.CameraSource`: it publishes each frame
   into a newest-frame slot FRAME_DELIVERY_S after the replay clock reaches
   its stamp (decoding it before), and closes the slot after the last one.
@@ -76,6 +77,23 @@ class ReplayClock:
     def now_ns(self) -> int:
         """Recording time in ns."""
         return int(round(self.now_s() * 1e9))
+
+    def host_time_s(self, t_s: float) -> float:
+        """The monotonic time [s] (the `mono_ns` clock) at which the replay
+        reaches recording time `t_s`: where a live camera would have stamped
+        the frame. Before start() the clock is taken as starting now."""
+        start = self._start_ns
+        if start is None:
+            start = self.mono_ns()
+        return start * 1e-9 + (t_s - self.t0_s) / self.speed
+
+    def host_mapping(self) -> dict[str, float] | None:
+        """host time = host_t0_s + (recording time - recording_t0_s) / speed,
+        for metrics.json (None before start)."""
+        start = self._start_ns
+        if start is None:
+            return None
+        return {"recording_t0_s": self.t0_s, "host_t0_s": start * 1e-9, "speed": self.speed}
 
     def wait_until(self, t_s: float, stop: threading.Event) -> bool:
         """Wait until recording time `t_s`; False if `stop` was set first."""

@@ -7,12 +7,22 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+# The MAVLink feed keeps its last reset_counter under the service's state
+# directory ($XDG_STATE_HOME/nislam by default) and --sim-follow its scene's
+# textures in the cache directory: tests and the services they start keep
+# theirs in temporary folders, never in the user's home.
+os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="nislam-test-state-")
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="nislam-test-cache-")  # textures
+os.environ.pop("CACHE_DIRECTORY", None)
+os.environ.pop("STATE_DIRECTORY", None)
 
 # In CI the repository is cloned with `shared/` beside it: <repo>/../shared/data.
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

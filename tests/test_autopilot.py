@@ -136,6 +136,38 @@ def test_link_dispatches_sends_and_reconnects() -> None:
     assert opened[-1].closed and not link.alive
 
 
+def test_link_reopens_a_tcp_link_the_peer_closed(capsys: pytest.CaptureFixture) -> None:
+    """An autopilot (or SITL) restarting closes our TCP connection: the link
+    opens a new one instead of reading the dead socket for ever (pymavlink
+    only prints "EOF on TCP socket" without autoreconnect)."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(2)
+    port = server.getsockname()[1]
+    accepted: list[socket.socket] = []
+
+    def serve() -> None:
+        first, _ = server.accept()
+        first.close()  # the autopilot went away
+        accepted.append(server.accept()[0])  # ... and came back
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    link = FcLink(f"tcp:127.0.0.1:{port}", reconnect_min_s=0.05, reconnect_max_s=0.2)
+    link.start()
+    try:
+        assert link.counters.wait_for(lambda s: s.opens >= 2, WAIT_S)
+        assert link.stats.disconnects >= 1 and link.connected.wait(WAIT_S)
+        t.join(WAIT_S)
+        assert accepted
+    finally:
+        assert link.stop(10)
+        server.close()
+        for s in accepted:
+            s.close()
+    assert "EOF on TCP socket" not in capsys.readouterr().out
+
+
 def test_attitude_source_maps_and_filters_messages() -> None:
     link = FcLink("udpout:127.0.0.1:9")  # never started: messages are fed by hand
     buf = AttitudeBuffer()

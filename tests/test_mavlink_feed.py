@@ -3,9 +3,11 @@ reset counter and state, from literal tracker results (no sockets)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +18,8 @@ from onboard import NislamError
 from onboard.core.messages import TrackState
 from onboard.core.rotations import MOUNT_R_B_C, mount_rotation
 from onboard.outputs.mavlink_feed import FeedState, VisionFeed, diag_cov21, euler_rpy, q_wxyz
+from onboard.outputs.mavlink_origin import OriginHandshake, ResetCounterStore, state_directory
+from onboard.outputs.settings import MavlinkConfig
 
 DT = 1.0 / 30.0
 S = math.sqrt(0.5)
@@ -147,7 +151,7 @@ def test_reset_counter_and_states_follow_the_tracker() -> None:
         (0, FeedState.STANDBY), (2, FeedState.ACTIVE), (10, FeedState.LOST),
         (12, FeedState.ACTIVE), (35, FeedState.DEGRADED), (40, FeedState.ACTIVE),
     ]
-    texts = [t for e in events for _sev, t in e.texts]
+    texts = [t for e in events for _sev, t in e.notices + e.texts]
     assert texts == [
         "initialising", "tracking, quality 60", "lost: peak too weak", "reset 1: lost",
         "tracking, quality 60", "reset 2: jump 1.43 m", "reset 3: tracker reset",
@@ -201,3 +205,60 @@ def test_importing_the_outputs_has_no_side_effects() -> None:
          "from onboard.outputs.mavlink import load_mavutil\nload_mavutil()"],
         env=env, capture_output=True, text=True, timeout=120)
     assert refused.returncode != 0 and "MAVLink 1" in refused.stderr
+
+
+# --------------------------------------------------------------------------- restarts
+
+
+def test_a_new_process_starts_one_above_the_last_counter_sent(tmp_path) -> None:
+    store = ResetCounterStore(tmp_path / "state")
+    first = store.start_counter(clock_s=1234.5)  # nothing kept yet: from the clock
+    assert first == 12345 % 256
+    feed = VisionFeed(np.eye(3), start_counter=first)
+    assert feed.update(track_result(0.0, [0, 0, 0])).sample.reset_counter == first
+    store.save(first)
+    ev = feed.update(track_result(DT, [5.0, 0, 0]))  # a jump
+    store.save(ev.sample.reset_counter)
+    # The next process (the same directory) announces its new origin with +1.
+    nxt = ResetCounterStore(tmp_path / "state").start_counter(clock_s=1234.5)
+    assert nxt == (first + 2) % 256 != ev.sample.reset_counter
+    (tmp_path / "state" / "mavlink_reset_counter").write_text("255\n")
+    assert ResetCounterStore(tmp_path / "state").start_counter() == 0  # uint8 wraps
+
+
+def test_the_counter_store_never_raises(tmp_path, caplog) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    store = ResetCounterStore(blocker / "state")
+    store.save(3)
+    store.save(4)
+    assert store.saved is None
+    assert sum("cannot keep reset_counter" in r.message for r in caplog.records) == 1  # once
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "mavlink_reset_counter").write_text("garbage")
+    assert ResetCounterStore(tmp_path / "bad").start_counter(clock_s=2.0) == 20
+
+
+def test_state_directory_follows_systemd_then_xdg() -> None:
+    assert state_directory("/srv/x", {"STATE_DIRECTORY": "/var/lib/nislam"}) == Path("/srv/x")
+    assert state_directory("", {"STATE_DIRECTORY": "/var/lib/nislam:/var/lib/other"}) == Path(
+        "/var/lib/nislam")
+    assert state_directory("", {"XDG_STATE_HOME": "/h/.st"}) == Path("/h/.st/nislam")
+    assert state_directory("", {"HOME": "/home/u"}) == Path("/home/u/.local/state/nislam")
+
+
+def test_time_usec_is_the_host_time_of_a_replayed_stamp() -> None:
+    feed = VisionFeed(np.eye(3), host_time_s=lambda t: 5000.0 + (t - 1000.0) / 0.5)
+    ev = feed.update(track_result(1001.0, [0, 0, 0]))
+    assert ev.sample.time_usec == 5002_000_000
+    ev = feed.update(track_result(1001.0 + DT, [0.01, 0, 0]))
+    # ... while velocities stay those of the recording's own time base
+    assert ev.sample.v_L_m_s[0] == pytest.approx(0.01 / DT)
+
+
+def test_origin_home_only_when_asked() -> None:
+    cfg = MavlinkConfig(set_origin=True, origin_lat_deg=1.0, origin_lon_deg=2.0)
+    assert [m for m, _ in OriginHandshake(cfg).messages(0.0, 0)] == ["set_gps_global_origin"]
+    cfg = dataclasses.replace(cfg, set_home=True)
+    assert [m for m, _ in OriginHandshake(cfg).messages(0.0, 0)] == [
+        "set_gps_global_origin", "set_home_position"]

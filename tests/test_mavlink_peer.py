@@ -69,8 +69,8 @@ def odometry_run() -> JsonLinesProcess:
     port = free_port()
     peer = start_peer(f"udpin:127.0.0.1:{port}", "--timesync-s", "0.05")
     cfg = MavlinkConfig(enabled=True, connect=f"udpout:127.0.0.1:{port}", stale_s=30.0,
-                        queue_frames=100, set_origin=True, origin_lat_deg=47.3977419,
-                        origin_lon_deg=8.5455938, origin_alt_m=488.5)
+                        queue_frames=100, set_origin=True, set_home=True,
+                        origin_lat_deg=47.3977419, origin_lon_deg=8.5455938, origin_alt_m=488.5)
     out = MavlinkOutput(cfg)
     try:
         for _i, r in results():
@@ -125,8 +125,9 @@ def test_odometry_velocity_is_body_frd(odometry_run: JsonLinesProcess) -> None:
 
 def test_reset_counter_bumps_exactly_on_resets(odometry_run: JsonLinesProcess) -> None:
     counters = [m["reset_counter"] for m in msgs(odometry_run, "ODOMETRY")]
+    c0 = counters[0]  # one above an earlier process's last (test_restart_* checks it)
     # 8 poses, lost -> restart (tracker reset): +1 for 6 poses, jump: +1 for the rest
-    assert counters == [0] * 8 + [1] * 6 + [2] * 12
+    assert counters == [c0] * 8 + [(c0 + 1) % 256] * 6 + [(c0 + 2) % 256] * 12
 
 
 def test_no_pose_while_lost_or_initialising(odometry_run: JsonLinesProcess) -> None:
@@ -147,13 +148,14 @@ def test_heartbeat_component_type_and_status(odometry_run: JsonLinesProcess) -> 
 
 def test_statustext_on_every_state_change(odometry_run: JsonLinesProcess) -> None:
     texts = [m["text"] for m in msgs(odometry_run, "STATUSTEXT")]
+    c0 = msgs(odometry_run, "ODOMETRY")[0]["reset_counter"]
     assert texts == [
         "NISLAM: initialising",
         "NISLAM: tracking, quality 60",
         "NISLAM: lost: correlation peak too weak",
-        "NISLAM: reset 1: lost",
+        f"NISLAM: reset {(c0 + 1) % 256}: lost",
         "NISLAM: tracking, quality 60",
-        "NISLAM: reset 2: jump 1.85 m",
+        f"NISLAM: reset {(c0 + 2) % 256}: jump 1.85 m",
         "NISLAM: degraded, quality 10",
         "NISLAM: tracking, quality 60",
     ]
@@ -201,7 +203,7 @@ def test_vision_position_fallback() -> None:
         assert [m["roll"], m["pitch"], m["yaw"]] == pytest.approx([0.0, 0.0, math.pi / 2])
         assert [m["covariance"][i] for i in (0, 6, 11, 15, 18, 20)] == pytest.approx(
             list(POSE_VAR), rel=1e-6)
-        assert m["reset_counter"] == 0
+        assert m["reset_counter"] == pos[0]["reset_counter"]
     for m in msgs(peer, "VISION_SPEED_ESTIMATE"):  # local (NED-like) frame
         assert [m["x"], m["y"], m["z"]] == pytest.approx([0.9, 0.0, 0.0], abs=1e-5)
         assert [i for i, c in enumerate(m["covariance"]) if c != 0] == [0, 4, 8]

@@ -6,6 +6,7 @@ process (tests/mavlink_peer.py) and a zenoh subscriber in this one, all on
 from __future__ import annotations
 
 import json
+import math
 import socket
 import threading
 import time
@@ -90,10 +91,12 @@ degraded_gap_s = 2.0
 """
 
 
-def start_service(seq: Path, out: Path, mav_port: int, zenoh_ep: str, *extra: str
-                  ) -> JsonLinesProcess:
+def start_service(seq: Path, out: Path, mav_port: int, zenoh_ep: str, *extra: str,
+                  mavlink_keys: str = "") -> JsonLinesProcess:
+    """`extra` lines go into [service], `mavlink_keys` into [mavlink]."""
     cfg = out.parent / f"{out.name}.toml"
-    cfg.write_text(TEST_PROFILE + "".join(extra))
+    cfg.write_text(TEST_PROFILE.replace("[mavlink]\n", "[mavlink]\n" + mavlink_keys)
+                   + "".join(extra))
     return JsonLinesProcess([
         str(NISLAM), "run", "--replay", str(seq), "--config", str(cfg), "--out", str(out),
         "--mavlink", f"udpout:127.0.0.1:{mav_port}", "--zenoh-connect", zenoh_ep,
@@ -131,13 +134,22 @@ def of(msgs: list[dict], kind: str) -> list[dict]:
     return [m for m in msgs if m["mavpackettype"] == kind]
 
 
-def ate_of_odometry(odometry: list[dict], seq_dir: Path) -> float:
+def recording_times(odometry: list[dict], out: Path) -> np.ndarray:
+    """The recording's stamps of ODOMETRY messages: time_usec is the host's
+    monotonic time the replay reached them (metrics.json host_clock)."""
+    clock = json.loads((out / "metrics.json").read_text())["host_clock"]
+    t_host = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    t = clock["recording_t0_s"] + (t_host - clock["host_t0_s"]) * clock["speed"]
+    return np.round(t, 6)  # the recording's stamps are whole microseconds; time_usec too
+
+
+def ate_of_odometry(odometry: list[dict], seq_dir: Path, out: Path) -> float:
     """ATE RMSE of the ODOMETRY positions against ground truth, each stretch
     of one reset_counter value SE(3)-aligned on its own: a bumped counter
     tells the flight controller that the poses after it start anew."""
     gt = open_sequence(seq_dir).groundtruth
     assert gt is not None
-    t = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    t = recording_times(odometry, out)
     p_est = np.array([[m["x"], m["y"], m["z"]] for m in odometry])
     counter = np.array([m["reset_counter"] for m in odometry])
     p_gt, _, valid = gt.interpolate(t, 0.2)
@@ -168,10 +180,16 @@ def test_service_feeds_the_autopilot_and_stops_cleanly_on_sigterm(
     assert rc == 0, svc.stderr[-2000:]
     odometry = of(msgs, "ODOMETRY")
     assert len(odometry) >= 30
-    ate = ate_of_odometry(odometry, flights["clean"])
+    ate = ate_of_odometry(odometry, flights["clean"], tmp_path / "out")
     print(f"ATE of the poses received over MAVLink: {ate * 1e3:.1f} mm ({len(odometry)} poses)")
     assert ate < 0.02
-    assert all(m["reset_counter"] == 0 for m in odometry)
+    assert len({m["reset_counter"] for m in odometry}) == 1
+    t_usec = [m["time_usec"] for m in odometry]
+    assert t_usec == sorted(t_usec)
+    # Capture time on the host's clock: the peer (same CLOCK_MONOTONIC) got
+    # each pose after its capture, well within a second at a third of real time.
+    latency_s = np.array([m["t"] - m["time_usec"] * 1e-6 for m in odometry])
+    assert (latency_s > 0).all() and np.median(latency_s) < 0.5, latency_s
     # starting, then tracking: over MAVLink (heartbeat and status texts) and zenoh.
     status = [m["system_status"] for m in of(msgs, "HEARTBEAT")]
     assert STANDBY in status and ACTIVE in status
@@ -179,15 +197,59 @@ def test_service_feeds_the_autopilot_and_stops_cleanly_on_sigterm(
     texts = [m["text"] for m in of(msgs, "STATUSTEXT")]
     starting = next(i for i, t in enumerate(texts) if "starting" in t)
     assert any("tracking" in t for t in texts[starting + 1:]), texts
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert len(texts) == metrics["health_changes"], texts  # one STATUSTEXT per transition
     assert "tracking" in states and "lost" not in states
     assert set(states) <= {"starting", "tracking", "degraded"}  # degraded: this machine paused
     if "starting" in states:  # published before the subscriber was matched, or not
         assert states.index("starting") < states.index("tracking")
     # SIGTERM: the frame finished, outputs flushed, results written, summary printed.
-    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["frames_tracked"] >= len(odometry)
     assert any(line.startswith("ATE RMSE") for line in svc.text), svc.text
     assert any("Hz" in line and "key frames" in line for line in svc.text)  # statistics lines
+
+
+def test_a_restart_mid_flight_tells_the_autopilot_with_reset_counter_and_time_goes_on(
+        flights: dict[str, Path], tmp_path: Path) -> None:
+    """Stop the service mid-flight and start it again on the same vehicle (the
+    same state directory): the new process's world starts at its first pose,
+    so the feed steps back; that first pose carries a new reset_counter (the
+    previous one + 1) and time_usec keeps increasing."""
+    port = free_port()
+    peer = JsonLinesProcess(python_script(PEER, f"udpin:127.0.0.1:{port}"))
+    peer.wait_for(lambda lines: any(m.get("ready") for m in lines), 60, "peer ready")
+    sub = StatusSubscriber("hil")
+    state = f'state_dir = "{tmp_path / "state"}"\n'
+
+    def poses() -> list[dict]:
+        return [m for m in peer.lines if m.get("mavpackettype") == "ODOMETRY"]
+
+    try:
+        for run, n in (("first", 75), ("second", 10)):
+            before = len(poses())
+            svc = start_service(flights["clean"], tmp_path / run, port, sub.endpoint,
+                                mavlink_keys=state)
+            try:
+                peer.wait_for(lambda ls: len(poses()) >= before + n, 120, f"{run} run's poses")
+            finally:
+                assert svc.stop() == 0, svc.stderr[-2000:]
+            if run == "first":
+                first_run = poses()
+    finally:
+        peer.stop()
+        sub.close()
+    odometry = poses()
+    k = len(first_run)
+    last, new = odometry[k - 1], odometry[k]
+    step_m = math.dist([last["x"], last["y"], last["z"]], [new["x"], new["y"], new["z"]])
+    assert step_m > 0.3  # 2.5 s into the orbit, then a new world from the start pose
+    assert len({m["reset_counter"] for m in first_run}) == 1
+    assert new["reset_counter"] == (last["reset_counter"] + 1) % 256
+    t_usec = [m["time_usec"] for m in odometry]
+    assert all(b > a for a, b in zip(t_usec, t_usec[1:]))  # across the restart too
+    gap_s = (new["time_usec"] - last["time_usec"]) / 1e6
+    print(f"restart: step {step_m:.2f} m, reset_counter {last['reset_counter']} -> "
+          f"{new['reset_counter']}, time_usec +{gap_s:.1f} s")
 
 
 def test_service_survives_a_damaged_flight_and_never_sends_an_untrusted_pose(
@@ -197,12 +259,13 @@ def test_service_survives_a_damaged_flight_and_never_sends_an_untrusted_pose(
     assert rc == 0, svc.stderr[-2000:]
     odometry = of(msgs, "ODOMETRY")
     t0, t1 = gap_window(seq)
-    times = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    times = recording_times(odometry, tmp_path / "out")
     # No attitude, no NI-SLAM pose: nothing is sent for the frames inside the gap.
     assert not np.any((times > t0 + 0.05) & (times < t1 - 0.05))
     before = [m["reset_counter"] for m, t in zip(odometry, times) if t < t0]
     after = [m["reset_counter"] for m, t in zip(odometry, times) if t > t1]
-    assert before and after and set(before) == {0} and min(after) >= 1
+    assert before and after and len(set(before)) == 1
+    assert min((c - before[0]) % 256 for c in after) >= 1  # bumped (uint8, may wrap)
     assert LOST in [m["system_status"] for m in of(msgs, "HEARTBEAT")]
     # Resumed: tracking again after the last lost spell (the state may end
     # degraded if this machine paused near the end: recover_s has not run out).
@@ -227,10 +290,10 @@ def test_fallback_tracker_keeps_the_feed_through_an_attitude_gap(
     assert rc == 0, svc.stderr[-2000:]
     odometry = of(msgs, "ODOMETRY")
     t0, t1 = gap_window(seq)
-    times = np.array([m["time_usec"] * 1e-6 for m in odometry])
+    times = recording_times(odometry, tmp_path / "out")
     inside = (times > t0 + 0.05) & (times < t1 - 0.05)
     assert inside.sum() >= 5  # FastORB posed the frames NI-SLAM could not
-    counters = [m["reset_counter"] for m in odometry]
+    counters = [(m["reset_counter"] - odometry[0]["reset_counter"]) % 256 for m in odometry]
     # Out and back: a bump at each switch (and one per restart of either
     # tracker, should this machine starve it of frames).
     assert counters == sorted(counters) and counters[-1] >= 2
@@ -240,7 +303,7 @@ def test_fallback_tracker_keeps_the_feed_through_an_attitude_gap(
     assert "degraded" in states
     # No frame went without a pose for want of attitude: FastORB took them.
     assert metrics["lost_reasons"].get("no attitude", 0) == 0, metrics["lost_reasons"]
-    ate = ate_of_odometry(odometry, seq)
+    ate = ate_of_odometry(odometry, seq, tmp_path / "out")
     print(f"ATE through the gap with the fallback: {ate * 1e3:.1f} mm")
     assert ate < 0.05
 

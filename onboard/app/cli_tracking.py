@@ -139,6 +139,14 @@ def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
     src.add_argument("--sim", metavar="SCENARIO",
                      help="generate a synthetic flight (" + ", ".join(SCENARIO_NAMES) + ") "
                           "and replay it")
+    src.add_argument("--sim-follow", metavar="SCENE",
+                     help="closed loop with a simulator on the --mavlink link (ArduPilot SITL): "
+                          "render the camera and AHRS from the vehicle's true state (SIM_STATE) "
+                          "in a synthetic scene (room, corridor, or a flight's start)")
+    rn.add_argument("--ahrs-profile", metavar="NAME",
+                    help="--sim-follow: simulated AHRS error (perfect, myahrs, autopilot)")
+    rn.add_argument("--camera-size", metavar="WxH",
+                    help="--sim-follow: rendered image size (default 640x480)")
     rn.add_argument("--seconds", type=float, metavar="N",
                     help="stop after N seconds (with --sim: the flight's length, default 20)")
     rn.add_argument("--loop", action="store_true",
@@ -163,6 +171,13 @@ def _run_overrides(args: argparse.Namespace) -> dict[str, Any]:
         out.update({"zenoh.listen": args.zenoh_listen, "zenoh.enabled": True})
     if args.vehicle is not None:
         out["zenoh.vehicle"] = args.vehicle
+    if args.ahrs_profile is not None:
+        out["sim_follow.ahrs_profile"] = args.ahrs_profile
+    if args.camera_size is not None:
+        w, _, h = args.camera_size.lower().partition("x")
+        if not (w.isdigit() and h.isdigit()):
+            raise NislamError(f"--camera-size must look like 640x480, got {args.camera_size!r}")
+        out.update({"sim_follow.width": int(w), "sim_follow.height": int(h)})
     return out
 
 
@@ -170,13 +185,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     from onboard.app.config import load_config
     from onboard.app.sdnotify import Notifier
     from onboard.app.service import Service
-    from onboard.app.sources import hardware_sources, replay_sources
+    from onboard.app.sources import follow_sources, hardware_sources, replay_sources
 
     if args.seconds is not None and not args.seconds > 0:
         raise NislamError(f"--seconds must be > 0, got {args.seconds}")
     if args.loop and (args.seconds is None or (args.replay is None and args.sim is None)):
         raise NislamError("--loop needs --seconds and --replay or --sim")
+    if (args.ahrs_profile or args.camera_size) and args.sim_follow is None:
+        raise NislamError("--ahrs-profile and --camera-size go with --sim-follow")
     cfg = load_config(args.config, _run_overrides(args), overrides_origin="command line")
+    if args.sim_follow is not None and not cfg.mavlink.enabled:
+        raise NislamError("--sim-follow needs the simulator's MAVLink link: --mavlink URL "
+                          "(e.g. tcp:127.0.0.1:5762 for ArduPilot SITL)")
     out_dir, seconds = args.out, args.seconds
     loop_s = seconds if args.loop else None
     if args.sim is not None:
@@ -190,6 +210,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         sources, cfg = replay_sources(cfg, flight.out_dir, loop_s)
         if not args.loop:
             seconds = None  # the replay ends with the flight
+    elif args.sim_follow is not None:
+        out_dir = out_dir or Path("results") / f"run_follow_{args.sim_follow}"
+        sources = follow_sources(cfg, args.sim_follow)
     elif args.replay is not None:
         out_dir = out_dir or Path("results") / f"run_{args.replay.resolve().name}"
         sources, cfg = replay_sources(cfg, args.replay, loop_s)

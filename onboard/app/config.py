@@ -6,7 +6,8 @@ Sections map one-to-one onto frozen dataclasses: `[replay]` -> ReplayConfig,
 `[mavlink]` -> MavlinkConfig
 and `[zenoh]` -> ZenohConfig (the outputs); `[ahrs]`, `[myahrs]`,
 `[autopilot]`, `[oak]` and `[record]` -> the driver and recording sections
-(AhrsConfig ... RecordConfig); `[service]` -> ServiceConfig (`nislam run`).
+(AhrsConfig ... RecordConfig); `[service]` -> ServiceConfig (`nislam run`);
+`[sim_follow]` -> SimFollowConfig (`nislam run --sim-follow`).
 The `[nislam]` and `[fastorb]` keys are read
 from those dataclasses' fields, so a parameter added to a tracker is
 configurable (and validated by its type) without touching this module.
@@ -39,6 +40,7 @@ from onboard.app.config_sections import (
     RecordConfig,
     ReplayConfig,
     ServiceConfig,
+    SimFollowConfig,
     TrackerConfig,
 )
 from onboard.fastorb.params import FastOrbParams
@@ -68,6 +70,7 @@ class Config:
     oak: OakConfig = field(default_factory=OakConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
+    sim_follow: SimFollowConfig = field(default_factory=SimFollowConfig)
 
 
 SECTIONS: dict[str, type] = {
@@ -84,6 +87,7 @@ SECTIONS: dict[str, type] = {
     "oak": OakConfig,
     "record": RecordConfig,
     "service": ServiceConfig,
+    "sim_follow": SimFollowConfig,
 }
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.oak import IMU_WORLDS, STEREO_PRESETS
-from onboard.app.config_sections import AHRS_SOURCES
+from onboard.app.config_sections import AHRS_SOURCES, SIM_FOLLOW_REQUESTS
 from onboard.fusion.registry import TRACKER_NAMES
 from onboard.outputs.settings import MAVLINK_MESSAGES, MOUNT_NAMES, WORLD_FRAMES, ZENOH_MODES
 
@@ -93,6 +93,18 @@ def _key_chunk_problem(value: str) -> str | None:
 def _unit_quaternion_problem(value: tuple[float, ...]) -> str | None:
     norm = math.sqrt(sum(v * v for v in value))
     return None if abs(norm - 1.0) < 1e-3 else f"must be a unit quaternion (norm {norm:.4g})"
+
+
+def _ahrs_profile_problem(value: str) -> str | None:
+    from sim_replay.sensors import AHRS_PROFILES  # numpy/OpenCV: only when the key is checked
+
+    return None if value in AHRS_PROFILES else (
+        f"must be one of {', '.join(repr(p) for p in AHRS_PROFILES)}")
+
+
+def _dir_problem(value: str) -> str | None:
+    """A directory path or "" (the default place); created when missing."""
+    return "must not hold a NUL character" if "\0" in value else None
 
 
 POSITIVE = Range(lo=0.0, lo_open=True)
@@ -219,6 +231,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "mavlink.origin_lat_deg": Range(-90.0, 90.0),
     "mavlink.origin_lon_deg": Range(-180.0, 180.0),
     "mavlink.origin_alt_m": ANY,
+    "mavlink.state_dir": Check(_dir_problem),
     # outputs: zenoh
     "zenoh.vehicle": Check(_key_chunk_problem),
     "zenoh.mode": Choice(ZENOH_MODES),
@@ -271,6 +284,17 @@ RULES: dict[str, Range | Choice | Check] = {
     "service.attitude_wait_s": Range(0.0, 1.0),
     "service.stats_period_s": POSITIVE,
     "service.replay_speed": Range(0.01, 100.0),
+    # nislam run --sim-follow
+    "sim_follow.request": Choice(SIM_FOLLOW_REQUESTS),
+    "sim_follow.state_rate_hz": Range(1.0, 1000.0),
+    "sim_follow.target_component": Range(0, 255),
+    "sim_follow.camera_hz": Range(1.0, 120.0),
+    "sim_follow.width": Range(32, 4096),
+    "sim_follow.height": Range(24, 4096),
+    "sim_follow.ahrs_profile": Check(_ahrs_profile_problem),
+    "sim_follow.ahrs_hz": Range(1.0, 1000.0),
+    "sim_follow.start_height_m": Range(0.0, 2.0),
+    "sim_follow.position_tau_s": Range(0.0, 10.0),
 }
 
 

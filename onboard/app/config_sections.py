@@ -121,3 +121,26 @@ class ServiceConfig:
     attitude_wait_s: float = 0.05  # longest wait for the AHRS to reach a frame's capture time
     stats_period_s: float = 5.0  # one statistics line (and systemd STATUS) this often
     replay_speed: float = 1.0  # --replay / --sim pace: 1 = real time
+
+
+SIM_FOLLOW_REQUESTS = ("SIM_STATE", "HIL_STATE_QUATERNION", "none")
+
+
+@dataclass(frozen=True)
+class SimFollowConfig:
+    """`nislam run --sim-follow SCENE`: the camera and AHRS rendered from a
+    simulated vehicle's true state, read over the [mavlink] link
+    (sim_replay/follow.py, docs/closed_loop.md)."""
+
+    request: str = "SIM_STATE"  # asked for with MAV_CMD_SET_MESSAGE_INTERVAL ("none": sent anyway)
+    state_rate_hz: float = 50.0  # ... at this rate
+    target_component: int = 1  # the simulated autopilot's component
+    camera_hz: float = 30.0
+    width: int = 640  # rendered image size (focal length scales with the width)
+    height: int = 480
+    ahrs_profile: str = "perfect"  # simulated AHRS error: "perfect", "myahrs", "autopilot"
+    ahrs_hz: float = 100.0
+    start_height_m: float = 0.1  # the vehicle's first state is this high above the floor
+    position_tau_s: float = 0.5  # smoothing of the reported position's lat/lon steps
+    seed: int = 0  # textures and sensor noise
+    render_process: bool = False  # render in a worker process of its own (off the tracker's GIL)

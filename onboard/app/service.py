@@ -109,7 +109,8 @@ class Service:
     def run(self) -> RunResult:
         pin_one_core()
         t_start = time.monotonic()
-        outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link)
+        outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
+                               host_time_s=self.sources.host_time_s)
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop, and compile
         # the tracker's kernels (or load them from numba's cache) before the
@@ -305,6 +306,12 @@ class Service:
             "periods": list(s.periods),
             **s.frame_ms.stats(),
         }
+        if self.sources.source_stats is not None:
+            metrics["source_stats"] = self.sources.source_stats()
+        if self.sources.host_mapping is not None:
+            # The MAVLink feed's time_usec is on the host's monotonic clock; the
+            # trajectories keep the recording's stamps: how one maps onto the other.
+            metrics["host_clock"] = self.sources.host_mapping()
         seq = self.sources.sequence
         if seq is not None:
             metrics["skipped"] = seq.skipped.as_dict()  # what the reader left out, by kind

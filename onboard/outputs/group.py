@@ -19,7 +19,7 @@ a bounded queue that drops the oldest entry. `close` stops those threads.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Protocol
 
@@ -113,18 +113,21 @@ class OutputGroup:
 
 
 def make_outputs(mavlink: MavlinkConfig, zenoh: ZenohConfig,
-                 mavlink_link: SharedLink | None = None) -> OutputGroup:
+                 mavlink_link: SharedLink | None = None,
+                 host_time_s: Callable[[float], float] | None = None) -> OutputGroup:
     """The outputs the sections enable ([mavlink] and [zenoh] `enabled`); an empty
     group (a null output) when none is. `mavlink_link`: the autopilot link
     when something else owns it (drivers.fc_link.FcLink); otherwise the
-    MAVLink output opens [mavlink] connect itself. pymavlink and zenoh load
-    only when their output is enabled."""
+    MAVLink output opens [mavlink] connect itself. `host_time_s`: frame
+    stamps -> host monotonic time, for sources that keep a recording's own
+    stamps (the MAVLink feed's time_usec is always on the host's clock).
+    pymavlink and zenoh load only when their output is enabled."""
     outputs: list[Output] = []
     try:
         if mavlink.enabled:
             from onboard.outputs.mavlink import MavlinkOutput
 
-            outputs.append(MavlinkOutput(mavlink, link=mavlink_link))
+            outputs.append(MavlinkOutput(mavlink, link=mavlink_link, host_time_s=host_time_s))
         if zenoh.enabled:
             from onboard.outputs.zenoh_out import ZenohOutput
 

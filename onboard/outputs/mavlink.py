@@ -3,7 +3,7 @@
 Per tracked frame one ODOMETRY (or, selectable, VISION_POSITION_ESTIMATE +
 VISION_SPEED_ESTIMATE), a HEARTBEAT at 1 Hz from component 197 telling how
 tracking goes, a STATUSTEXT on every change of that, TIMESYNC answers and,
-optionally, the EKF origin and home once at start. Facts behind every field:
+optionally, the EKF origin once at start. Facts behind every field:
 ../shared/docs/reference-flight-stack.md; the autopilot settings:
 docs/autopilot.md. What the samples hold and when: onboard.outputs.mavlink_feed.
 
@@ -54,7 +54,7 @@ from onboard.outputs.mavlink_feed import (
     diag_cov21,
     euler_rpy,
 )
-from onboard.outputs.mavlink_origin import OriginHandshake
+from onboard.outputs.mavlink_origin import OriginHandshake, ResetCounterStore, state_directory
 from onboard.outputs.settings import MavlinkConfig
 
 log = logging.getLogger(__name__)
@@ -127,12 +127,15 @@ class MavlinkOutput:
 
     def __init__(
         self, cfg: MavlinkConfig, clock_ns: Callable[[], int] = time.monotonic_ns,
-        link: SharedLink | None = None,
+        link: SharedLink | None = None, host_time_s: Callable[[float], float] | None = None,
     ) -> None:
         self.cfg = cfg
         self._mavutil = load_mavutil()
         self._mav = self._mavutil.mavlink
-        self.feed = VisionFeed.from_config(cfg)
+        # reset_counter goes on from the last one any earlier process sent
+        # (mavlink_origin); `host_time_s` maps replayed stamps onto our clock.
+        self.counter_store = ResetCounterStore(state_directory(cfg.state_dir))
+        self.feed = VisionFeed.from_config(cfg, self.counter_store.start_counter(), host_time_s)
         self._clock_ns = clock_ns
         self._queue: deque[TrackResult] = deque(maxlen=cfg.queue_frames)
         self._lock = threading.Lock()
@@ -405,7 +408,7 @@ class MavlinkOutput:
 
     # ------------------------------------------------------------- messages
     def _handle(self, event: FeedEvent) -> None:
-        for severity, text in event.texts:
+        for severity, text in self._event_texts(event):
             self._statustext(severity, text)
         if event.changed:
             self._heartbeat()
@@ -418,6 +421,16 @@ class MavlinkOutput:
                 self._stats.poses_sent += 1
             else:
                 self._stats.not_sent += 1
+        if sent:
+            self.counter_store.save(event.sample.reset_counter)
+
+    def _event_texts(self, event: FeedEvent) -> tuple[tuple[int, str], ...]:
+        """One STATUSTEXT per transition: when the loop reports its health
+        (publish_health, which says every change itself), the feed's own
+        state changes stay silent; its resets are always told."""
+        if self._health is not None:
+            return event.notices
+        return event.notices + event.texts
 
     def _send_odometry(self, s: VisionSample) -> bool:
         return self._send(

@@ -26,16 +26,22 @@ with R_B_C the camera mount (`mount`): "forward" (camera z = body x, camera
 x = body y, camera y = body z), "down" (camera z = body z, the image top
 towards the nose: camera y = -body x) or "custom" (`mount_q_B_C_xyzw`).
 
-Time. `time_usec` is the frame's capture time (`TrackResult.t_s`), on the
-host's monotonic clock when the frames come from the cameras (depthai stamps
-with it). TIMESYNC requests (tc1 = 0) are answered with the same clock in
-nanoseconds, so PX4 maps our stamps onto its own; ArduPilot jitter-corrects
-them. (On a recording the stamps are the recording's.)
+Time. `time_usec` is the frame's capture time on the host's monotonic clock
+(CLOCK_MONOTONIC, shared by every process of one boot), so it only ever
+increases, across replays and restarts too. Cameras stamp with that clock
+(depthai does); a replayed recording keeps its own stamps in
+`TrackResult.t_s` (and in the trajectories written), and `host_time_s` maps
+them onto the monotonic time the replay reached them. TIMESYNC requests
+(tc1 = 0) are answered with the same clock in nanoseconds, so PX4 maps our
+stamps onto its own; ArduPilot jitter-corrects them.
 
-reset_counter (uint8, wraps) goes up by exactly one at the first pose after
-the tracker's own reset_counter changed, after a lost spell, or when the
-position steps further than `jump_m` faster than `jump_speed_m_s`. No pose is
-ever sent for a frame the tracker does not trust.
+reset_counter (uint8, wraps) starts at `start_counter` (one above the last
+one an earlier process sent: onboard.outputs.mavlink_origin), so the first
+pose of a new process, whose world starts at that pose, announces a new
+origin; it goes up by exactly one at the first pose after the tracker's own
+reset_counter changed, after a lost spell, or when the position steps
+further than `jump_m` faster than `jump_speed_m_s`. No pose is ever sent for
+a frame the tracker does not trust.
 
 State (HEARTBEAT system_status, quality):
 
@@ -56,6 +62,7 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -183,7 +190,8 @@ class FeedEvent:
     sample: VisionSample | None  # a pose to send, or None
     state: FeedState
     changed: bool  # the state differs from the previous one
-    texts: tuple[tuple[int, str], ...] = ()  # (severity, STATUSTEXT) to send
+    texts: tuple[tuple[int, str], ...] = ()  # (severity, STATUSTEXT) of the state change
+    notices: tuple[tuple[int, str], ...] = ()  # (severity, STATUSTEXT) of a reset
 
 
 @dataclass
@@ -206,6 +214,8 @@ class VisionFeed:
         jump_m: float = 0.1,
         jump_speed_m_s: float = 10.0,
         velocity_window_s: float = 0.1,
+        start_counter: int = 0,
+        host_time_s: Callable[[float], float] | None = None,
     ) -> None:
         self.R_C_B = np.asarray(R_B_C, dtype=np.float64).T
         self.R_L_W = R_L_W[world_frame]
@@ -214,7 +224,8 @@ class VisionFeed:
         self.jump_speed_m_s = jump_speed_m_s
         self.window_s = velocity_window_s
         self.state = FeedState.BOOT
-        self.reset_counter = 0  # ours, as sent (uint8)
+        self.reset_counter = start_counter % 256  # ours, as sent (uint8)
+        self.host_time_s = host_time_s  # frame stamp -> host monotonic time (None: the same)
         self.resets = 0
         self._tracker_counter: int | None = None
         self._pending_reset: str | None = None  # why the next pose bumps the counter
@@ -223,10 +234,12 @@ class VisionFeed:
         self._last_quality = 0
 
     @classmethod
-    def from_config(cls, cfg: MavlinkConfig) -> VisionFeed:
+    def from_config(cls, cfg: MavlinkConfig, start_counter: int = 0,
+                    host_time_s: Callable[[float], float] | None = None) -> VisionFeed:
         return cls(
             mount_rotation(cfg.mount, cfg.mount_q_B_C_xyzw), cfg.world_frame,
             cfg.degraded_quality, cfg.jump_m, cfg.jump_speed_m_s, cfg.velocity_window_s,
+            start_counter, host_time_s,
         )
 
     @property
@@ -289,8 +302,9 @@ class VisionFeed:
         self._had_pose = True
         quality = int(min(100, max(1, result.quality)))
         self._last_quality = quality
+        t_host_s = result.t_s if self.host_time_s is None else self.host_time_s(result.t_s)
         sample = VisionSample(
-            time_usec=max(0, int(round(result.t_s * 1e6))),
+            time_usec=max(0, int(round(t_host_s * 1e6))),
             p_L_m=p_L,
             R_L_B=R_L_B,
             v_B_m_s=R_L_B.T @ v_L,
@@ -306,7 +320,7 @@ class VisionFeed:
         word = "degraded" if state is FeedState.DEGRADED else "tracking"
         event = self._enter(sample, state, f"{word}, quality {quality}")
         if texts:
-            return FeedEvent(event.sample, event.state, event.changed, tuple(texts) + event.texts)
+            return FeedEvent(event.sample, event.state, event.changed, event.texts, tuple(texts))
         return event
 
     def _tracking_state(self, quality: int) -> FeedState:

@@ -39,10 +39,15 @@ class MavlinkConfig:
     stale_s: float = 0.5  # no tracker result for this long = lost ("no frames")
     reconnect_s: float = 1.0  # retry a link that failed after this long
     queue_frames: int = 8  # results waiting for the sender; the oldest is dropped
-    set_origin: bool = False  # send SET_GPS_GLOBAL_ORIGIN and SET_HOME_POSITION at start
+    set_origin: bool = False  # send SET_GPS_GLOBAL_ORIGIN at start (the GPS-less EKF origin)
+    set_home: bool = False  # with set_origin, SET_HOME_POSITION too (ArduPilot ignores it)
     origin_lat_deg: float = 0.0
     origin_lon_deg: float = 0.0
     origin_alt_m: float = 0.0  # above mean sea level
+    # Where the last reset_counter sent is kept, so a restarted service never
+    # reuses it: "" = $STATE_DIRECTORY (systemd), else $XDG_STATE_HOME/nislam,
+    # else ~/.local/state/nislam (onboard/outputs/mavlink_origin.py).
+    state_dir: str = ""
 
 
 @dataclass(frozen=True)
