@@ -99,7 +99,8 @@ def cmd_ground(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides, overrides_origin="command line").zenoh
     if not cfg.connect:
         raise NislamError("no router to connect to: give --connect EP (or [zenoh] connect)")
-    emit = (lambda line: print(line, flush=True)) if args.table_period > 0 else (lambda _: None)
+    if args.table_period < 0:
+        raise NislamError(f"--table-period must be >= 0, got {args.table_period}")
     with stop_on_signals() as stop, _save_on_sigusr1() as save:
         session = open_waiting(session_config(cfg, listen=()), stop, on_wait=lambda: log.warning(
             "waiting for the router at %s", ", ".join(cfg.connect)))
@@ -108,8 +109,8 @@ def cmd_ground(args: argparse.Namespace) -> int:
         try:
             station = GroundStation(session)
             try:
-                result = run_ground(station, args.out, stop, args.seconds, emit,
-                                    args.table_period or 1e9, save)
+                result = run_ground(station, args.out, stop, args.seconds,
+                                    lambda line: print(line, flush=True), args.table_period, save)
             finally:
                 station.close()
         finally:

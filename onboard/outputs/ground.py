@@ -44,6 +44,7 @@ from onboard.outputs.router import FLEET_STATUS_KEY
 log = logging.getLogger(__name__)
 
 REFETCH_S = 2.0  # a vehicle's map is fetched again at most this often
+SNAPSHOT_S = 0.5  # the fleet status queryable's answer is this fresh
 LATENCY_WINDOW = 64  # poses in the latency median
 
 
@@ -298,22 +299,25 @@ def run_ground(station: GroundStation, out_dir: Path, stop: threading.Event,
                table_period_s: float = 1.0, save_now: threading.Event | None = None,
                settle_s: float = 5.0) -> GroundResult:
     """Follow the fleet until `stop` (or `seconds`), print the table every
-    `table_period_s`, write the files on exit and whenever `save_now` is set.
+    `table_period_s` (0: never), write the files on exit and whenever
+    `save_now` is set.
     At the end it waits up to `settle_s` for maps still being fetched."""
     start = time.monotonic()
     end = None if seconds is None else start + seconds
-    next_table = start + table_period_s
+    next_table = next_snapshot = start
     last_table = start
     while not stop.is_set() and (end is None or time.monotonic() < end):
         station.step(0.1)
         now = time.monotonic()
-        if now >= next_table:
+        if now >= next_snapshot:  # what the fleet status queryable answers
             station.refresh_snapshot()
+            next_snapshot = now + SNAPSHOT_S
+        if table_period_s > 0 and now >= next_table + table_period_s:
             for line in table_lines(station.vehicles, now - last_table):
                 emit(line)
             for v in station.vehicles.values():
                 v.period_poses = 0
-            last_table, next_table = now, now + table_period_s
+            last_table = next_table = now
         if save_now is not None and save_now.is_set():
             save_now.clear()
             write_fleet(out_dir, station.summary(), station.vehicles)
