@@ -242,3 +242,48 @@ def test_router_configuration_is_checked_and_exported_for_zenohd(
     v1_rules = [r for r in acl["rules"] if r["id"].startswith("v1-")]
     assert all(r["key_exprs"] == ["nislam/v1/**"] for r in v1_rules)
     assert not any("query" in r["messages"] for r in v1_rules if r["flows"] == ["ingress"])
+
+
+class _Recorder:
+    """The parts of a zenoh.Session ZenohOutput uses, recording the QoS asked for."""
+
+    def __init__(self) -> None:
+        self.publishers: dict[str, dict] = {}
+        self.puts: list[tuple[str, dict]] = []
+
+    def declare_publisher(self, key: str, **kwargs) -> _Recorder:
+        self.publishers[key] = kwargs
+        return self
+
+    def put(self, key: str, payload=None, **kwargs) -> None:
+        if payload is not None:  # a session put (key frames); a publisher's put has no key
+            self.puts.append((key, kwargs))
+
+    def declare_matching_listener(self, callback) -> _Recorder:
+        return self
+
+    def declare_queryable(self, key: str, callback) -> _Recorder:
+        return self
+
+    def liveliness(self) -> _Recorder:
+        return self
+
+    def declare_token(self, key: str) -> _Recorder:
+        return self
+
+    def undeclare(self) -> None:
+        pass
+
+
+def test_poses_go_at_a_higher_priority_than_key_frames() -> None:
+    rec = _Recorder()
+    with ZenohOutput(ZenohConfig(vehicle="p1"), session=rec) as out:
+        out.publish(track_result(0.0, finished=(keyframe(0, shape=(10, 10)),)))
+        wait_until(lambda: rec.puts, "key frame put")
+    pose = rec.publishers["nislam/p1/pose"]["priority"]
+    status = rec.publishers["nislam/p1/status"]["priority"]
+    (key, kf), = rec.puts
+    assert key == "nislam/p1/map/keyframe/0"
+    # zenoh.Priority as an int: smaller is more urgent (REAL_TIME = 1).
+    assert int(pose) < int(status) < int(kf["priority"])
+    assert (pose, kf["priority"]) == (zenoh.Priority.INTERACTIVE_HIGH, zenoh.Priority.DATA_LOW)
