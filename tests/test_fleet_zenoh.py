@@ -187,9 +187,9 @@ def test_tls_and_acl_only_the_fleet_connects_each_vehicle_under_its_own_key(
             for i, v in enumerate(vehicles):
                 assert v.wait_connected(WAIT_S)
                 fly(v, 3, [0], seed=4 + i)
-            pump(station, lambda: all(len(station.vehicles[v].keyframes) == 1
-                                      for v in ("v1", "v2") if v in station.vehicles)
-                 and len(station.vehicles) == 2, "both vehicles' key frames through the router")
+            pump(station, lambda: len(station.vehicles) == 2 and all(
+                len(station.vehicles[v].keyframes) == 1 and station.vehicles[v].poses == 3
+                for v in ("v1", "v2")), "both vehicles' poses and key frames through the router")
             # v1 forges a pose of v2, then puts one of its own at the same
             # priority: once the ground has the second, the first was refused.
             before = {v: station.vehicles[v].poses for v in ("v1", "v2")}
