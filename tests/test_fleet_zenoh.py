@@ -119,6 +119,29 @@ def test_late_join_and_a_restarted_vehicle_stays_one_vehicle(tmp_path: Path) -> 
     assert {p.name for p in files} >= {"fleet.json", "v1.ply", "v1.boot1.ply", "fleet.png"}
 
 
+def test_key_frames_made_while_the_router_is_down_reach_the_ground_after() -> None:
+    """The router goes away, the vehicle makes two key frames (its puts find
+    no route), the router comes back on the same endpoint: both sessions
+    reconnect by themselves, the status digest differs from the ground's, and
+    the ground fetches the map: every key frame, content checked."""
+    ep = endpoint()
+    vcfg = ZenohConfig(vehicle="o1", mode="client", connect=(ep,), status_period_s=0.2)
+    r1 = open_session(router_config(RouterConfig(listen=(ep,))))
+    with ground(ZenohConfig(connect=(ep,))) as station, ZenohOutput(vcfg) as out:
+        assert out.wait_connected(WAIT_S)
+        fly(out, 3, [0], seed=7)
+        pump(station, lambda: len(station.vehicles.get("o1", _NoKeys()).keyframes) == 1,
+             "the first key frame")
+        v = station.vehicles["o1"]
+        fetches = v.fetches
+        r1.close()
+        fly(out, 3, [0, 1, 2], seed=8)  # key frame 0 refined (new content), 1 and 2 new
+        crcs = {int(k): c for k, c in out.run_stats()["keyframe_crc32"].items()}
+        with router(RouterConfig(listen=(ep,))):
+            pump(station, lambda: v.crcs == crcs, "the map after the router came back")
+        assert v.fetches > fetches and list(station.vehicles) == ["o1"] and v.restarts == 0
+
+
 def test_the_fleet_status_queryable_answers_for_other_tools() -> None:
     ep = endpoint()
     with router(RouterConfig(listen=(ep,))), ground(ZenohConfig(connect=(ep,))) as station:
