@@ -151,7 +151,7 @@ def test_the_render_process_renders_what_the_thread_does() -> None:
     cam = follow_camera_model(160, 120, matrix_to_quat(R_B_C))
     track = VehicleTrack(np.array([0.0, -0.4, -1.3]))
     track.push_message(at_ned(0, 0, 0, q=(math.cos(0.4), 0, 0, math.sin(0.4))), 0)
-    pose = track.pose_at(0)
+    assert track.pose_at(0) is not None
     frames = []
     for separate in (False, True):
         camera = FollowCamera(track, "room", cam, R_B_C, texture_cache=cache,

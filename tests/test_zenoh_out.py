@@ -182,6 +182,12 @@ class StuckSession:
     def declare_queryable(self, key: str, callback) -> _Undeclarable:
         return _Undeclarable()
 
+    def liveliness(self) -> StuckSession:
+        return self
+
+    def declare_token(self, key: str) -> _Undeclarable:
+        return _Undeclarable()
+
 
 class StuckPublisher(_Undeclarable):
     def __init__(self, session: StuckSession, key: str) -> None:

@@ -1,5 +1,5 @@
 """The `nislam` command: `nislam run` (the onboard service), `replay`, `bench`,
-`sim`, `faults`, `listen` and `record`.
+`sim`, `faults`, `listen`, `record`, and the fleet's `router` and `ground`.
 
 Parsing comes first and imports nothing heavy, so `--help` and usage errors
 are instant; numpy, OpenCV and the tracker load only once a command runs.
@@ -15,6 +15,7 @@ import sys
 
 from onboard import NislamError
 from onboard.app.cli_data import add_data_parsers
+from onboard.app.cli_fleet import add_fleet_parsers
 from onboard.app.cli_tracking import add_tracking_parsers
 
 log = logging.getLogger("nislam")
@@ -40,6 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_tracking_parsers(sub, verbose)
     add_data_parsers(sub, verbose)
+    add_fleet_parsers(sub, verbose)
     return parser
 
 

@@ -131,6 +131,8 @@ def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
                     help="zenoh endpoint to connect to (repeatable); enables [zenoh]")
     rn.add_argument("--zenoh-listen", action="append", metavar="EP",
                     help="zenoh endpoint to listen on (repeatable); enables [zenoh]")
+    rn.add_argument("--zenoh-mode", choices=("peer", "client"),
+                    help="zenoh mode ([zenoh] mode; client: of a fleet router, docs/fleet.md)")
     rn.add_argument("--vehicle", metavar="ID", help="zenoh vehicle id ([zenoh] vehicle)")
     rn.add_argument("--tracker", metavar="NAME", help="primary tracker (nislam, fastorb)")
     src = rn.add_mutually_exclusive_group()
@@ -169,6 +171,8 @@ def _run_overrides(args: argparse.Namespace) -> dict[str, Any]:
         out.update({"zenoh.connect": args.zenoh_connect, "zenoh.enabled": True})
     if args.zenoh_listen is not None:
         out.update({"zenoh.listen": args.zenoh_listen, "zenoh.enabled": True})
+    if args.zenoh_mode is not None:
+        out["zenoh.mode"] = args.zenoh_mode
     if args.vehicle is not None:
         out["zenoh.vehicle"] = args.vehicle
     if args.ahrs_profile is not None:

@@ -4,7 +4,8 @@ Sections map one-to-one onto frozen dataclasses: `[replay]` -> ReplayConfig,
 `[attitude]` -> AttitudeErrorConfig, `[tracker]` -> TrackerConfig,
 `[nislam]` / `[fastorb]` -> the trackers' own `NislamParams` / `FastOrbParams`,
 `[mavlink]` -> MavlinkConfig
-and `[zenoh]` -> ZenohConfig (the outputs); `[ahrs]`, `[myahrs]`,
+`[zenoh]` -> ZenohConfig (the outputs) and `[router]` -> RouterConfig
+(`nislam router`); `[ahrs]`, `[myahrs]`,
 `[autopilot]`, `[oak]` and `[record]` -> the driver and recording sections
 (AhrsConfig ... RecordConfig); `[service]` -> ServiceConfig (`nislam run`);
 `[sim_follow]` -> SimFollowConfig (`nislam run --sim-follow`).
@@ -45,7 +46,7 @@ from onboard.app.config_sections import (
 )
 from onboard.fastorb.params import FastOrbParams
 from onboard.nislam.params import NislamParams
-from onboard.outputs.settings import MavlinkConfig, ZenohConfig
+from onboard.outputs.settings import MavlinkConfig, RouterConfig, ZenohConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -64,6 +65,7 @@ class Config:
     fastorb: FastOrbParams = field(default_factory=FastOrbParams)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    router: RouterConfig = field(default_factory=RouterConfig)
     ahrs: AhrsConfig = field(default_factory=AhrsConfig)
     myahrs: MyAhrsConfig = field(default_factory=MyAhrsConfig)
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
@@ -81,6 +83,7 @@ SECTIONS: dict[str, type] = {
     "fastorb": FastOrbParams,
     "mavlink": MavlinkConfig,
     "zenoh": ZenohConfig,
+    "router": RouterConfig,
     "ahrs": AhrsConfig,
     "myahrs": MyAhrsConfig,
     "autopilot": AutopilotConfig,

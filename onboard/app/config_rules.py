@@ -13,7 +13,13 @@ from typing import Any
 from drivers.oak import IMU_WORLDS, STEREO_PRESETS
 from onboard.app.config_sections import AHRS_SOURCES, SIM_FOLLOW_REQUESTS
 from onboard.fusion.registry import TRACKER_NAMES
-from onboard.outputs.settings import MAVLINK_MESSAGES, MOUNT_NAMES, WORLD_FRAMES, ZENOH_MODES
+from onboard.outputs.settings import (
+    MAVLINK_MESSAGES,
+    MOUNT_NAMES,
+    WORLD_FRAMES,
+    ZENOH_MODES,
+    ZENOH_PRIORITIES,
+)
 
 
 @dataclass(frozen=True)
@@ -88,6 +94,15 @@ def _key_chunk_problem(value: str) -> str | None:
     if _KEY_CHUNK.match(value):
         return None
     return "must be one zenoh key chunk: letters, digits, '_', '-', '.'"
+
+
+def _key_chunks_problem(value: tuple[str, ...]) -> str | None:
+    bad = [v for v in value if not _KEY_CHUNK.match(v)]
+    return f"holds {bad[0]!r}: each must be one zenoh key chunk (a vehicle id)" if bad else None
+
+
+def _common_names_problem(value: tuple[str, ...]) -> str | None:
+    return "must not hold an empty name" if any(not v.strip() for v in value) else None
 
 
 def _unit_quaternion_problem(value: tuple[float, ...]) -> str | None:
@@ -240,6 +255,15 @@ RULES: dict[str, Range | Choice | Check] = {
     "zenoh.status_period_s": POSITIVE,
     "zenoh.queue_frames": POSITIVE,
     "zenoh.map_max_mb": POSITIVE,
+    "zenoh.map_rate_kb_s": NON_NEGATIVE,
+    "zenoh.pose_priority": Choice(ZENOH_PRIORITIES),
+    "zenoh.status_priority": Choice(ZENOH_PRIORITIES),
+    "zenoh.map_priority": Choice(ZENOH_PRIORITIES),
+    "router.listen": Check(_zenoh_endpoints_problem),
+    "router.connect": Check(_zenoh_endpoints_problem),
+    "router.vehicles": Check(_key_chunks_problem),
+    "router.grounds": Check(_common_names_problem),
+    "mavlink.signing_link_id": Range(0, 255),
     # drivers and recording
     "ahrs.source": Choice(AHRS_SOURCES),
     "ahrs.buffer_samples": Range(lo=2),

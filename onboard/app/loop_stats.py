@@ -5,6 +5,8 @@ the periodic statistics line and the run's summary.
 from __future__ import annotations
 
 import collections
+import json
+import os
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -135,3 +137,20 @@ def jsonable(v: Any) -> Any:
     if isinstance(v, np.integer):
         return int(v)
     return v
+
+
+RUN_FILE = "run.json"
+
+
+def write_run_json(out_dir: Path, run: dict[str, Any]) -> Path:
+    """`<out>/run.json`: what the run did, for scripts (one JSON object,
+    written whole). Keys so far: keyframes_published (distinct key-frame ids
+    the zenoh output published and holds for late joiners; null without
+    zenoh), keyframe_crc32 (id -> CRC-32 of its message), outputs (each
+    output's counters)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / RUN_FILE
+    tmp = path.with_name(RUN_FILE + ".tmp")  # then rename: never half a file
+    tmp.write_text(json.dumps(jsonable(run), indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+    return path

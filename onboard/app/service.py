@@ -35,7 +35,7 @@ import numpy as np
 from onboard.app.bench import pin_one_core
 from onboard.app.config import Config, config_to_toml
 from onboard.app.health import HealthMonitor, HealthThresholds
-from onboard.app.loop_stats import LoopStats, RunResult, jsonable, stats_line
+from onboard.app.loop_stats import LoopStats, RunResult, jsonable, stats_line, write_run_json
 from onboard.app.replay import (
     CONFIG_FILE,
     METRICS_FILE,
@@ -105,6 +105,7 @@ class Service:
         self.ready = False
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
+        self._output_stats: dict[str, dict[str, Any]] = {}  # each output's counters at the end
 
     def run(self) -> RunResult:
         pin_one_core()
@@ -126,6 +127,7 @@ class Service:
             self.notifier.stopping()
             try:
                 outputs.close()
+                self._output_stats = outputs.stats()
             finally:
                 stop_times = self.sources.stop()
                 self.notifier.close()
@@ -332,6 +334,12 @@ class Service:
             write_text_atomic(self.out_dir / CONFIG_FILE, config_to_toml(self.cfg))
             write_text_atomic(self.out_dir / METRICS_FILE,
                               json.dumps(jsonable(metrics), indent=2, allow_nan=False) + "\n")
+            zs = self._output_stats.get("zenoh")
+            write_run_json(self.out_dir, {
+                "keyframes_published": None if zs is None else zs["keyframes_published"],
+                "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
+                "outputs": self._output_stats,
+            })
         return RunResult(metrics, self.out_dir)
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult
 from onboard.outputs.settings import MavlinkConfig, ZenohConfig
@@ -90,6 +90,16 @@ class OutputGroup:
     def publish_health(self, report: HealthReport) -> None:
         for out in self.outputs:
             out.publish_health(report)
+
+    def stats(self) -> dict[str, dict[str, Any]]:
+        """Each member's `run_stats()` or `stats()` (those that have one) by
+        kind: "zenoh", "mavlink"."""
+        out: dict[str, dict[str, Any]] = {}
+        for o in self.outputs:
+            fn = getattr(o, "run_stats", None) or getattr(o, "stats", None)
+            if callable(fn):
+                out[type(o).__name__.removesuffix("Output").lower()] = fn()
+        return out
 
     def close(self) -> None:
         """Close every member, even when one fails (the first error is raised)."""

@@ -29,7 +29,7 @@ import zenoh
 from onboard.outputs.mapcodec import MapCodecError, MapKeyframe, decode_keyframe
 from onboard.outputs.ply import write_ply
 from onboard.outputs.settings import ZenohConfig
-from onboard.outputs.zenoh_out import key_prefix, open_session, session_config
+from onboard.outputs.zenoh_session import key_prefix, open_waiting, session_config
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +161,11 @@ def listen(
     """Listen to `cfg.vehicle` until `stop` is set; write the map to `out`."""
     printer = _Printer(emit, json_lines, pose_hz)
     poses = statuses = 0
-    with open_session(session_config(cfg)) as session:
+    session = open_waiting(session_config(cfg), stop, on_wait=lambda: log.warning(
+        "waiting for %s (a client waits for its router)", ", ".join(cfg.connect) or "a peer"))
+    if session is None:  # stopped before the session opened
+        return ListenResult(0, 0, 0, 0, None)
+    with session:
         listener = MapListener(session, cfg.vehicle)
         try:
             printer.event("ready", {"vehicle": cfg.vehicle},

@@ -40,6 +40,7 @@ same arrays bit for bit.
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,3 +154,12 @@ def decode_keyframe(data: bytes | bytearray | memoryview) -> MapKeyframe:
     off += n * dsize
     rgb = np.frombuffer(buf, np.uint8, n * 3, off).reshape(n, 3).copy()
     return MapKeyframe(int(kid), float(t_s), p_W, R_W_C, res_m, mask, depth, rgb)
+
+
+def map_digest(crc_by_id: dict[int, int]) -> str:
+    """One 8-hex-digit digest of a set of key frames (each id with the CRC-32
+    of its message): the vehicle's status carries it, and a ground station
+    whose own digest differs fetches the map again (a key frame missed, or
+    one re-published after a refinement)."""
+    body = b"".join(struct.pack("<iI", k, crc_by_id[k]) for k in sorted(crc_by_id))
+    return f"{zlib.crc32(body):08x}"

@@ -55,6 +55,7 @@ from onboard.outputs.mavlink_feed import (
     euler_rpy,
 )
 from onboard.outputs.mavlink_origin import OriginHandshake, ResetCounterStore, state_directory
+from onboard.outputs.mavlink_signing import enable_signing, load_signing_key
 from onboard.outputs.settings import MavlinkConfig
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,7 @@ class MavlinkStats:
     link_errors: int = 0
     link_opens: int = 0
     link_up: bool = False
+    signature_rejects: int = 0  # received messages unsigned or wrongly signed (signing on)
     sent_by_type: dict[str, int] = field(default_factory=dict)
 
 
@@ -150,6 +152,12 @@ class MavlinkOutput:
         self._last_result_at: float | None = None
         self._origin = OriginHandshake(cfg)
         self._shared = link
+        # MAVLink 2 signing (mavlink_signing.py) on a link we open ourselves.
+        self._signing_key = load_signing_key(cfg.signing_key_file) if cfg.signing_key_file else None
+        if self._signing_key is not None and link is not None:
+            raise NislamError("[mavlink] signing_key_file: signing is not available on a link "
+                              "shared with the autopilot attitude source (ahrs.source = "
+                              "\"autopilot\") yet")
         self._rx: deque[Any] = deque(maxlen=64)  # messages a shared link handed over
         self._health: FeedState | None = None  # the loop's health, when it reports one
         self._health_texts: deque[tuple[int, str, FeedState]] = deque(maxlen=8)
@@ -307,6 +315,8 @@ class MavlinkOutput:
         if hasattr(conn, "handle_eof"):
             conn.handle_eof = lambda: self._mark_dead("closed by the peer")
             conn.handle_disconnect = lambda: self._mark_dead("connection reset")
+        if self._signing_key is not None:
+            enable_signing(conn, self._signing_key, self.cfg.signing_link_id)
         port = getattr(conn, "port", None)
         if port is not None and hasattr(port, "write_timeout"):
             port.write_timeout = 0.05  # a serial port that stops draining fails, not blocks
@@ -399,7 +409,10 @@ class MavlinkOutput:
 
     def _on_message(self, msg: Any) -> None:
         kind = msg.get_type()
-        if kind == "TIMESYNC" and msg.tc1 == 0:
+        if kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
+            with self._lock:
+                self._stats.signature_rejects += 1
+        elif kind == "TIMESYNC" and msg.tc1 == 0:
             if self._send("timesync", self._clock_ns(), msg.ts1):
                 with self._lock:
                     self._stats.timesync_replies += 1

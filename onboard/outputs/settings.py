@@ -1,5 +1,6 @@
-"""The outputs' configuration sections: `[mavlink]` (the vision-position feed)
-and `[zenoh]` (pose, status and map publishing, `nislam listen`).
+"""The outputs' configuration sections: `[mavlink]` (the vision-position feed),
+`[zenoh]` (pose, status and map publishing, `nislam listen`, `nislam ground`)
+and `[router]` (`nislam router`, the fleet's zenoh router).
 """
 
 from __future__ import annotations
@@ -16,6 +17,11 @@ MAVLINK_MESSAGES = ("odometry", "vision_position")
 
 
 ZENOH_MODES = ("peer", "client", "router")
+
+
+# zenoh.Priority names, highest first (zenoh's eight transmission queues).
+ZENOH_PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data",
+                    "data_low", "background")
 
 
 @dataclass(frozen=True)
@@ -48,6 +54,9 @@ class MavlinkConfig:
     # reuses it: "" = $STATE_DIRECTORY (systemd), else $XDG_STATE_HOME/nislam,
     # else ~/.local/state/nislam (onboard/outputs/mavlink_origin.py).
     state_dir: str = ""
+    signing_key_file: str = ""  # MAVLink 2 signing: 32-byte key file (64 hex digits or a
+    # passphrase, SHA-256 as MAVProxy); readable by the service user only. "" = no signing
+    signing_link_id: int = 0  # our link id in the signature (0-255)
 
 
 @dataclass(frozen=True)
@@ -63,3 +72,24 @@ class ZenohConfig:
     status_period_s: float = 1.0
     queue_frames: int = 32  # poses waiting for the publisher; the oldest is dropped
     map_max_mb: float = 512.0  # key frames kept for late joiners; the oldest go first
+    map_rate_kb_s: float = 0.0  # key-frame puts at most this many kB/s on average; 0 = no limit
+    pose_priority: str = "interactive_high"  # zenoh priority of pose (a ZENOH_PRIORITIES name)
+    status_priority: str = "data_high"
+    map_priority: str = "data_low"  # key frames and map replies: below poses on a busy link
+    tls_root_ca: str = ""  # fleet CA certificate (PEM); set = TLS (tls/... endpoints) with the two below
+    tls_certificate: str = ""  # this node's certificate from the fleet CA (PEM) ...
+    tls_private_key: str = ""  # ... and its key: mutual TLS (the router checks it)
+
+
+@dataclass(frozen=True)
+class RouterConfig:
+    """`nislam router`: a zenoh router for the fleet (onboard/outputs/router.py)."""
+
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)  # endpoints vehicles and grounds reach
+    connect: tuple[str, ...] = ()  # other routers (several rooms / Wi-Fi cells)
+    tls_root_ca: str = ""  # fleet CA: with the two below, listen on tls/... with mutual TLS
+    tls_certificate: str = ""
+    tls_private_key: str = ""
+    acl: bool = False  # access control by certificate common name (needs TLS)
+    vehicles: tuple[str, ...] = ()  # vehicle ids = their certificates' common names
+    grounds: tuple[str, ...] = ("ground",)  # ground stations' certificate common names

@@ -2,7 +2,8 @@
 
 Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
 
-    pose                every frame, JSON: seq (0, 1, ... per publisher),
+    pose                every frame, JSON: seq (0, 1, ... per publisher), boot,
+                        sent_unix_s (wall clock at the put: latency),
                         t_s (capture time), state ("initializing",
                         "tracking", "lost"), trusted, p_W_m [x, y, z],
                         q_W_C_xyzw, pose_var (6 variances: x, y, z m^2, roll,
@@ -18,8 +19,14 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         0 starting, 1-100), frame_hz and pose_hz over the
                         period, psr (last) and psr_mean, counters (frames,
                         frames_tracked, frames_lost, keyframes, resets), the
-                        map held (map_keyframes, map_points, map_bytes),
-                        dropped_poses, dropped_keyframes, errors, uptime_s.
+                        map held (map_keyframes, map_points, map_bytes,
+                        map_digest: mapcodec.map_digest of the ids and
+                        CRC-32s held), keyframes_published (distinct ids),
+                        bytes_put by kind, dropped_poses, dropped_keyframes,
+                        errors, uptime_s, boot (random per process: a
+                        restarted vehicle keeps its id, its boot changes).
+                        A last status goes out at close.
+    alive               a liveliness token while the session is up.
     map/keyframe/<id>   each finished key frame, binary: the encoding of
                         onboard/outputs/mapcodec.py (encoding
                         "application/octet-stream;nislam-keyframe/1").
@@ -29,11 +36,21 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
     map/**              a queryable: a `get` on it (or on any key below it)
                         is answered with every key frame held, each as one
                         reply under its own map/keyframe/<id> key. Late
-                        joiners fetch the map this way.
+                        joiners fetch the map this way. Key-frame puts and
+                        replies carry the publisher's boot as attachment.
 
-Session (`session_config`): mode, connect and listen endpoints from the
-config, multicast scouting off unless `multicast_scouting`. In peer mode the
-session starts without any peer and connects whenever one appears.
+Session (onboard/outputs/zenoh_session.py): mode, connect and listen
+endpoints and TLS from the config, scouting off unless `multicast_scouting`.
+A peer starts without any peer and connects whenever one appears; a client
+(a fleet vehicle of a router, docs/fleet.md) opens on a helper thread, since
+zenoh's open waits for the router: until then results are counted and key
+frames held, nothing is put. Both reconnect by themselves when the router
+comes back; key frames put meanwhile are lost on the wire, and the status's
+map_digest tells a ground station to fetch the map again.
+
+Priorities (`pose_priority` > `status_priority` > `map_priority`): a busy
+link delays key frames, not poses. `map_rate_kb_s` limits the average rate of
+key-frame puts (a one-second allowance), on the map thread only.
 
 Threads. `publish()` appends the result to a bounded queue (the oldest is
 dropped when full) and returns; the `zenoh-pose` thread encodes and puts poses
@@ -50,55 +67,32 @@ from __future__ import annotations
 import json
 import logging
 import math
+import secrets
 import threading
 import time
-from collections import OrderedDict, deque
+import zlib
+from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any, Generic, TypeVar
+from typing import Any
 
 import zenoh
 from scipy.spatial.transform import Rotation
 
-from onboard import NislamError
 from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, TrackState
 from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
-from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe
+from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.zenoh_session import (
+    Worker,
+    key_prefix,
+    open_session,
+    priority,
+    session_config,
+)
+
+__all__ = ["ZenohOutput", "key_prefix", "open_session", "pose_message", "session_config"]
 
 log = logging.getLogger(__name__)
-
-T = TypeVar("T")
-
-
-def key_prefix(vehicle: str) -> str:
-    return f"nislam/{vehicle}"
-
-
-def session_config(
-    cfg: ZenohConfig,
-    mode: str | None = None,
-    connect: tuple[str, ...] | None = None,
-    listen: tuple[str, ...] | None = None,
-) -> zenoh.Config:
-    """A zenoh.Config from [zenoh], with optional overrides (command-line flags)."""
-    conf = zenoh.Config()
-    try:
-        conf.insert_json5("mode", json.dumps(mode or cfg.mode))
-        conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect if connect is None
-                                                                 else connect)))
-        conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen if listen is None
-                                                                else listen)))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
-    except zenoh.ZError as e:
-        raise NislamError(f"zenoh configuration refused: {e}") from None
-    return conf
-
-
-def open_session(conf: zenoh.Config) -> zenoh.Session:
-    try:
-        return zenoh.open(conf)
-    except zenoh.ZError as e:
-        raise NislamError(f"cannot open the zenoh session: {e}") from None
 
 
 def tracking_quality(result: TrackResult) -> int:
@@ -132,79 +126,49 @@ def pose_message(result: TrackResult, seq: int) -> dict[str, Any]:
     }
 
 
-class _Worker(Generic[T]):
-    """A thread fed through a bounded deque that drops its oldest item.
-    `tick()` (optional) runs after every wake-up and returns the seconds until
-    it wants to run again."""
+class _RateLimit:
+    """Average rate limit with a one-second allowance: `delay_s(n)` is how long
+    to wait before sending n bytes (0 without a limit)."""
 
-    def __init__(self, name: str, handle: Callable[[T], None], maxlen: int,
-                 tick: Callable[[], float] | None = None) -> None:
-        self._handle = handle
-        self._tick = tick
-        self._items: deque[T] = deque(maxlen=maxlen)
-        self._cond = threading.Condition()
-        self._stopping = False
-        self.dropped = 0
-        self.errors = 0
-        self._failing = False
-        self._name = name
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+    def __init__(self, bytes_per_s: float, burst_s: float = 1.0) -> None:
+        self.rate = bytes_per_s
+        self.burst_s = burst_s
+        self._next_free = -math.inf
 
-    def start(self) -> None:
-        self._thread.start()
+    def delay_s(self, n_bytes: int, now: float) -> float:
+        if self.rate <= 0:
+            return 0.0
+        # Virtual finish time of everything sent: after a quiet spell it may
+        # lag `now` by burst_s, so up to burst_s x rate bytes go at once.
+        self._next_free = max(self._next_free, now - self.burst_s) + n_bytes / self.rate
+        return max(0.0, self._next_free - now)
 
-    def put(self, item: T) -> None:
-        with self._cond:
-            if len(self._items) == self._items.maxlen:
-                self.dropped += 1
-            self._items.append(item)
-            self._cond.notify()
 
-    def wake(self) -> None:
-        """Run `tick()` now rather than when it asked to."""
-        with self._cond:
-            self._cond.notify()
+class _Entities:
+    """What is declared on an open session, set once (atomically) when it is."""
 
-    def stop(self, timeout_s: float) -> bool:
-        """Handle what is queued, then stop; False if the thread is still busy."""
-        with self._cond:
-            self._stopping = True
-            self._cond.notify()
-        self._thread.join(timeout_s)
-        return not self._thread.is_alive()
+    def __init__(self, out: ZenohOutput, s: zenoh.Session) -> None:
+        cfg, prefix = out.cfg, out.prefix
+        # BLOCK: a congested link holds up our threads, never the loop, and the
+        # only poses lost are the ones our own queue drops (counted in status).
+        block = zenoh.CongestionControl.BLOCK
+        self.session = s
+        self.pose = s.declare_publisher(
+            f"{prefix}/pose", encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=block, express=True, priority=priority(cfg.pose_priority))
+        self.status = s.declare_publisher(
+            f"{prefix}/status", encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=block, priority=priority(cfg.status_priority))
+        self.matching = self.pose.declare_matching_listener(out._on_matching)
+        self.queryable = s.declare_queryable(f"{prefix}/map/**", out._on_query)
+        self.alive = s.liveliness().declare_token(f"{prefix}/alive")
 
-    def _run(self) -> None:
-        wait_s: float | None = 0.0 if self._tick else None
-        while True:
-            with self._cond:
-                if not self._items and not self._stopping:
-                    self._cond.wait(wait_s)
-                items = list(self._items)
-                self._items.clear()
-                stopping = self._stopping
-            for item in items:
-                self._guard(self._handle, item)
-            if self._tick is not None:
-                wait_s = self._guard(self._tick)
-                wait_s = 1.0 if wait_s is None else max(0.0, wait_s)
-            if stopping:
-                return
-
-    def _guard(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """Run fn; count and log (once per spell) what it raises."""
-        try:
-            out = fn(*args)
-        except Exception as e:  # noqa: BLE001 - zenoh errors, encoding bugs: keep publishing
-            self.errors += 1
-            if not self._failing:
-                self._failing = True
-                log.warning("%s: %s: %s (further errors counted, not logged)",
-                            self._name, type(e).__name__, e)
-            return None
-        if self._failing:
-            self._failing = False
-            log.info("%s: working again after %d errors", self._name, self.errors)
-        return out
+    def undeclare(self) -> None:
+        for entity in (self.alive, self.matching, self.queryable, self.pose, self.status):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass
 
 
 class ZenohOutput:
@@ -215,37 +179,68 @@ class ZenohOutput:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
         self.prefix = key_prefix(cfg.vehicle)
+        self.boot = secrets.token_hex(4)  # this process's run: a restart shows as a new boot
         self._clock = clock
         self._own_session = session is None
-        self.session = open_session(session_config(cfg)) if session is None else session
+        self._entities: _Entities | None = None
+        self._connected = threading.Event()  # the session is open, entities declared
+        self._closing = threading.Event()
+        self._init_state(cfg, clock)
+        if session is None and cfg.mode == "client":
+            # A client's open waits for its router: never in the loop's way.
+            conf = session_config(cfg)
+            self._opener = threading.Thread(target=self._open_later, args=(conf,),
+                                            name="zenoh-open", daemon=True)
+            self._opener.start()
+        else:
+            self._attach(open_session(session_config(cfg)) if session is None else session)
+        self._pose_worker.start()
+        self._map_worker.start()
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._entities is None:
+            raise RuntimeError("the zenoh session is not open yet")
+        return self._entities.session
+
+    def _attach(self, s: zenoh.Session) -> None:
         try:
-            self._declare(cfg, clock)
+            self._entities = _Entities(self, s)
         except BaseException:
             if self._own_session:
-                self.session.close()
+                s.close()
             raise
+        self._connected.set()
 
-    def _declare(self, cfg: ZenohConfig, clock: Callable[[], float]) -> None:
-        s = self.session
-        # BLOCK: a congested link holds up our threads, never the loop, and the
-        # only poses lost are the ones our own queue drops (counted in status).
-        block = zenoh.CongestionControl.BLOCK
-        self._pose_pub = s.declare_publisher(
-            f"{self.prefix}/pose", encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=block, express=True,
-        )
-        self._status_pub = s.declare_publisher(
-            f"{self.prefix}/status", encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=block,
-        )
+    def wait_connected(self, timeout_s: float) -> bool:
+        """True once the session is open (a client: its router answered)."""
+        return self._connected.wait(timeout_s)
+
+    def _open_later(self, conf: zenoh.Config) -> None:
+        log.info("zenoh: connecting to %s (client mode: waiting for the router)",
+                 ", ".join(self.cfg.connect) or "nothing")
+        try:
+            s = zenoh.open(conf)
+        except zenoh.ZError as e:
+            log.error("zenoh: cannot open the session: %s (nothing is published)", e)
+            return
+        if self._closing.is_set():
+            s.close()
+            return
+        self._attach(s)
+        log.info("zenoh: session open")
+
+    def _init_state(self, cfg: ZenohConfig, clock: Callable[[], float]) -> None:
         self._matched = threading.Event()
-        self._matching = self._pose_pub.declare_matching_listener(self._on_matching)
         self._map_lock = threading.Lock()
         self._map: OrderedDict[int, tuple[bytes, int]] = OrderedDict()  # id -> (message, points)
+        self._crc: dict[int, int] = {}  # id -> CRC-32 of its message (map_digest)
+        self._ids: set[int] = set()  # every key-frame id ever handed over
         self._map_bytes = 0
         self._map_points = 0
         self._evicted = 0  # key frames forgotten because of map_max_mb
-        self._queryable = s.declare_queryable(f"{self.prefix}/map/**", self._on_query)
+        self._rate = _RateLimit(cfg.map_rate_kb_s * 1e3)
+        self._bytes = {"pose": 0, "status": 0, "map": 0}  # payload bytes put
         self._start = clock()
         self._seq = 0
         self._counts = {"frames": 0, "frames_tracked": 0, "frames_lost": 0, "keyframes": 0}
@@ -254,12 +249,10 @@ class ZenohOutput:
         self._last: TrackResult | None = None
         self._health: HealthReport | None = None
         self._next_status = clock()
-        self._pose_worker: _Worker[TrackResult] = _Worker(
+        self._pose_worker: Worker[TrackResult] = Worker(
             "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._status_tick)
-        self._map_worker: _Worker[KeyframeCloud] = _Worker("zenoh-map", self._put_keyframe, 256)
+        self._map_worker: Worker[KeyframeCloud] = Worker("zenoh-map", self._put_keyframe, 256)
         self._closed = False
-        self._pose_worker.start()
-        self._map_worker.start()
 
     # ------------------------------------------------------------- Output API
     def publish(self, result: TrackResult) -> None:
@@ -277,20 +270,25 @@ class ZenohOutput:
             self._pose_worker.wake()
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Publish what is queued, then undeclare and close the session."""
+        """Publish what is queued (the map rate limit no longer applies) and a
+        last status, then undeclare and close the session."""
         if self._closed:
             return
         self._closed = True
+        self._closing.set()
         ok = self._map_worker.stop(timeout_s) & self._pose_worker.stop(timeout_s)
         if not ok:
             log.warning("zenoh publisher threads still busy after %.1f s", timeout_s)
-        for entity in (self._matching, self._queryable, self._pose_pub, self._status_pub):
-            try:
-                entity.undeclare()
-            except zenoh.ZError:
-                pass
+        ent = self._entities
+        if ent is None:
+            return
+        try:  # the final map digest: a ground station can tell it holds every key frame
+            self._put_status(self._clock())
+        except zenoh.ZError as e:
+            log.debug("last status not sent: %s", e)
+        ent.undeclare()
         if self._own_session:
-            self.session.close()
+            ent.session.close()
 
     def __enter__(self) -> ZenohOutput:
         return self
@@ -305,7 +303,8 @@ class ZenohOutput:
     def stats(self) -> dict[str, Any]:
         with self._map_lock:
             held = {"map_keyframes": len(self._map), "map_points": self._map_points,
-                    "map_bytes": self._map_bytes}
+                    "map_bytes": self._map_bytes, "map_digest": map_digest(self._crc),
+                    "keyframes_published": len(self._ids)}
         return {
             **self._counts, **held,
             "poses_published": self._seq,
@@ -313,7 +312,16 @@ class ZenohOutput:
             "dropped_keyframes": self._map_worker.dropped,
             "evicted_keyframes": self._evicted,
             "errors": self._pose_worker.errors + self._map_worker.errors,
+            "bytes_put": dict(self._bytes),
+            "connected": self._entities is not None,
         }
+
+    def run_stats(self) -> dict[str, Any]:
+        """`stats()` and the CRC-32 of the message of every key frame held, by
+        id (run.json: a ground station's map can be checked against it)."""
+        with self._map_lock:
+            crcs = {str(k): self._crc[k] for k in sorted(self._crc)}
+        return {**self.stats(), "keyframe_crc32": crcs}
 
     # ------------------------------------------------------------- threads
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
@@ -336,17 +344,32 @@ class ZenohOutput:
             p["psr_sum"] += result.psr
             p["psr_n"] += 1
         self._last = result
+        ent = self._entities
+        if ent is None:
+            return  # not connected yet (a client waiting for its router)
         msg = pose_message(result, self._seq)
+        msg["boot"] = self.boot
+        msg["sent_unix_s"] = time.time()  # latency on the ground (clocks synchronised)
+        data = json.dumps(msg, allow_nan=False)
         self._seq += 1
-        self._pose_pub.put(json.dumps(msg, allow_nan=False))
+        ent.pose.put(data)
+        self._bytes["pose"] += len(data)
 
     def _status_tick(self) -> float:
         now = self._clock()
         if now < self._next_status:
             return self._next_status - now
         self._next_status = now + self.cfg.status_period_s
-        self._status_pub.put(json.dumps(self._status(now), allow_nan=False))
+        self._put_status(now)
         return self.cfg.status_period_s
+
+    def _put_status(self, now: float) -> None:
+        ent = self._entities
+        if ent is None:
+            return
+        data = json.dumps(self._status(now), allow_nan=False)
+        ent.status.put(data)
+        self._bytes["status"] += len(data)
 
     def _status(self, now: float) -> dict[str, Any]:
         last, p, health = self._last, self._period, self._health
@@ -358,6 +381,7 @@ class ZenohOutput:
         out = {
             "t_s": now,
             "vehicle": self.cfg.vehicle,
+            "boot": self.boot,
             "uptime_s": now - self._start,
             "state": state,
             "health_reason": None if health is None else health.reason,
@@ -378,10 +402,18 @@ class ZenohOutput:
         kf = MapKeyframe.from_cloud(cloud)
         data = encode_keyframe(kf)
         self._store(kf.keyframe_id, data, kf.num_points)
-        self.session.put(
+        delay_s = self._rate.delay_s(len(data), self._clock())
+        if delay_s > 0:  # the map rate limit; ends at close (flush what is left)
+            self._closing.wait(delay_s)
+        ent = self._entities
+        if ent is None:
+            return  # held for the queryable: a ground station fetches it once connected
+        ent.session.put(
             f"{self.prefix}/map/keyframe/{kf.keyframe_id}", data,
             encoding=KEYFRAME_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=priority(self.cfg.map_priority), attachment=self.boot,
         )
+        self._bytes["map"] += len(data)
 
     def _store(self, keyframe_id: int, data: bytes, points: int) -> None:
         limit = self.cfg.map_max_mb * 1e6
@@ -391,11 +423,14 @@ class ZenohOutput:
                 self._map_bytes -= len(old[0])
                 self._map_points -= old[1]
             self._map[keyframe_id] = (data, points)
+            self._crc[keyframe_id] = zlib.crc32(data)
+            self._ids.add(keyframe_id)
             self._map_bytes += len(data)
             self._map_points += points
             evicted = 0
             while self._map_bytes > limit and len(self._map) > 1:
-                _, (d, n) = self._map.popitem(last=False)
+                k, (d, n) = self._map.popitem(last=False)
+                del self._crc[k]
                 self._map_bytes -= len(d)
                 self._map_points -= n
                 evicted += 1
@@ -411,7 +446,7 @@ class ZenohOutput:
         with self._map_lock:
             held = [(k, d) for k, (d, _n) in self._map.items()]
         wanted = query.key_expr
-        for keyframe_id, data in held:
+        for keyframe_id, data in held:  # (a reply goes at the query's priority)
             key = f"{self.prefix}/map/keyframe/{keyframe_id}"
             if wanted.intersects(zenoh.KeyExpr(key)):
-                query.reply(key, data, encoding=KEYFRAME_ENCODING)
+                query.reply(key, data, encoding=KEYFRAME_ENCODING, attachment=self.boot)
