@@ -2,7 +2,9 @@
 
 Only `tracker.track()` is inside the timer, and everything it does counts
 (projection, correlation, depth translation, calibration, key-frame work):
-that is the per-frame budget the onboard loop has to fit in.
+that is the per-frame budget the onboard loop has to fit in. A back end run
+in slices after each frame (FastORB's local BA, `backend_step()`) is timed
+apart: per slice and per key frame.
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ def bench(
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
     frames = seq.load_all(max_frames)
     frame_ms: list[float] = []
+    backend_ms: list[float] = []  # FastORB's back-end slices, run after a frame and timed apart
+    job_ms: list[float] = []  # ... summed per key frame (one local BA)
     # by kind: a frame that starts a key or re-uses a kept one does more work
     kind_ms: dict[str, list[float]] = {"keyframe": [], "reused": [], "plain": []}
     for _ in range(repeat):
@@ -79,6 +83,14 @@ def bench(
             kind = ("keyframe" if result.new_keyframe
                     else "reused" if result.keyframe_reused else "plain")
             kind_ms[kind].append(dt_ms)
+            step = getattr(tracker, "backend_step", None)
+            if step is not None:
+                t0 = time.perf_counter()
+                if step():
+                    backend_ms.append((time.perf_counter() - t0) * 1e3)
+        mapping = getattr(tracker, "mapping", None)
+        if mapping is not None:
+            job_ms.extend(mapping.stats.job_ms)
     by_kind: dict[str, Any] = {}
     for kind, ms in kind_ms.items():
         by_kind[f"{kind}_frames"] = len(ms) // repeat
@@ -90,4 +102,15 @@ def bench(
         "repeat": repeat,
         **frame_time_stats(frame_ms),
         **by_kind,
+        **backend_stats(backend_ms, job_ms),
     }
+
+
+def backend_stats(slice_ms: list[float], job_ms: list[float]) -> dict[str, Any]:
+    """The back end's time apart from tracking (FastORB's local mapping): per
+    slice (one unit run after a frame) and per key frame (one local BA)."""
+    def q(a: list[float], p: float) -> float | None:
+        return float(np.percentile(a, p)) if a else None
+    return {"backend_slices": len(slice_ms), "backend_slice_ms_median": q(slice_ms, 50),
+            "backend_slice_ms_p95": q(slice_ms, 95), "backend_keyframes": len(job_ms),
+            "backend_keyframe_ms_median": q(job_ms, 50), "backend_keyframe_ms_p95": q(job_ms, 95)}
