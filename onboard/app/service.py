@@ -240,6 +240,7 @@ class Service:
             tl.t_s.append(result.t_s)
             tl.p_W_m.append(result.p_W_m)
             tl.q_W_C_xyzw.append(result.q_W_C_xyzw)
+            tl.reference_keyframe_id.append(result.reference_keyframe_id)
 
     def _maybe_stats(self, now: float) -> None:
         s = self.stats

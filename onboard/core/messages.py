@@ -103,6 +103,9 @@ class TrackResult:
     matched_cells: int
     finished_keyframes: tuple[KeyframeCloud, ...] = ()
     keyframe_reused: bool = False  # the frame switched to a key kept from before (not a new one)
+    # The key this frame's pose was measured against (-1: not known, or no
+    # single key): differs from `keyframe_id` on the frame that makes a new key.
+    reference_keyframe_id: int = -1
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

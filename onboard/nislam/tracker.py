@@ -172,6 +172,7 @@ class NislamTracker:
             matched_cells=outcome.depth.matched,
             finished_keyframes=tuple(finished),
             keyframe_reused=reused,
+            reference_keyframe_id=key.keyframe_id,
         )
 
     def _count_jump(self, p_W_m: np.ndarray, t_s: float) -> None:
@@ -346,6 +347,7 @@ class NislamTracker:
             attitude_offset_s=self._calib.offset_s,
             matched_cells=0,
             finished_keyframes=tuple(finished),
+            reference_keyframe_id=self._key.keyframe_id,
         )
 
     def _new_key_from(self, prev: _Prev) -> list[KeyframeCloud]:
