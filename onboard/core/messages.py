@@ -20,12 +20,16 @@ class RgbdFrame:
     """One colour + registered depth pair, already undistorted.
 
     `bgr`: (H, W, 3) uint8 in OpenCV channel order; `depth_m`: (H, W) float32
-    metres with 0 = no measurement; `t_s`: capture time on the source's clock.
+    metres with 0 = no measurement; `t_s`: capture time on the source's clock
+    (of the colour image when `depth_t_s` gives the depth's own).
     """
 
     t_s: float
     bgr: np.ndarray
     depth_m: np.ndarray
+    # When the depth image was captured, if not with the colour (a Kinect
+    # pairs them up to 20 ms apart); None = at `t_s`.
+    depth_t_s: float | None = None
 
 
 class AttitudeSource(Protocol):
