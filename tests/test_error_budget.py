@@ -43,3 +43,4 @@ def test_attitude_noise_leaks_in_proportion_to_depth(flight: Path, exact: dict) 
     and at least three times the exact-input floor."""
     noisy = _score(flight, "attitude noise 0.1 deg")
     assert 3.0 * exact["rpe1"] <= noisy["rpe1"] <= 0.012, noisy["rpe1"]
+
