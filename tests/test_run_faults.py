@@ -187,7 +187,7 @@ def test_a_full_disk_costs_the_last_second_with_one_line_and_no_tmp(tmp_path, mo
     assert result.metrics["frames"] == 120  # the run itself went on
 
 
-def test_an_interrupted_render_never_blocks_the_next(tmp_path, monkeypatch, capfd):
+def test_an_interrupted_render_never_blocks_the_next(tmp_path, monkeypatch):
     import sim_replay.sim as sim
 
     out = tmp_path / "flight"
@@ -201,9 +201,11 @@ def test_an_interrupted_render_never_blocks_the_next(tmp_path, monkeypatch, capf
         real_write(path, img)
 
     monkeypatch.setattr(sim, "_write_png", interrupted)
-    argv = ["sim", "circle", "--seconds", "0.5", "--width", "64", "--height", "48",
-            "--quiet", "--out", str(out)]
-    assert main(argv) == 130
+    # `make run` renders with simulate() into results/run_sim_circle/flight;
+    # coarse textures keep this test fast.
+    opts = sim.SimOptions(seconds=0.5, width=64, height=48, texel_m=0.03)
+    with pytest.raises(KeyboardInterrupt):
+        sim.simulate("circle", out, opts, progress=False)
     # The unfinished folder is refused by a reader, in one line ...
     from sim_replay.tum import open_sequence
 
@@ -211,7 +213,7 @@ def test_an_interrupted_render_never_blocks_the_next(tmp_path, monkeypatch, capf
         open_sequence(out)
     # ... and the next render (what `make run` does again) clears it and works.
     monkeypatch.setattr(sim, "_write_png", real_write)
-    assert main(argv) == 0
+    sim.simulate("circle", out, opts, progress=False)
     assert len(open_sequence(out)) == 15
     assert not (out / ".nislam-partial").exists()
 

@@ -116,7 +116,7 @@ class Service:
         self.tracker: SwitchingTracker | None = None
         self.health = HealthMonitor(HealthThresholds(
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
-            self.sc.start_grace_s, self.sc.recover_s), time.monotonic())
+            self.sc.start_grace_s, self.sc.recover_s), time.monotonic(), sources.devices)
         self.ready = False
         self.gate = PoseGate()  # no pose the motion model cannot explain goes out trusted
         self._last_seq = 0
@@ -129,12 +129,14 @@ class Service:
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)
         stop_times: dict[str, float] = {}
-        # Announce "starting" before anything can block the loop, and compile
-        # the tracker's kernels (or load them from numba's cache) before the
-        # sensors run: the first frames then meet a ready tracker.
+        # Announce "starting" before anything can block the loop; start the
+        # sensors, then compile the tracker's kernels (or load them from
+        # numba's cache) while they come up: a missing device is told within
+        # a second or two of start, and frames that arrive during the warm-up
+        # are only replaced in the newest-frame slot.
         self._report(outputs, self.health.on_idle(time.monotonic()))
-        kernels.warm_up()
         self.sources.start()
+        kernels.warm_up()
         if self.live is not None:
             self.live.open()
         try:
@@ -284,6 +286,8 @@ class Service:
         }
         s.periods.append(period)
         line = stats_line(period, self.tracker)
+        if self.health.report.devices:  # each driver's state (drivers/device_state.py)
+            line += "  " + ", ".join(self.health.report.devices)
         self.emit(line)
         self.notifier.status(line)
         s.period_ms = []
