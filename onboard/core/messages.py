@@ -135,3 +135,4 @@ class HealthReport:
     state: Health
     reason: str  # one line: why this state (shown in STATUSTEXT and zenoh status)
     changed: bool = False  # differs from the previous report's state
+    devices: tuple[str, ...] = ()  # each driver's state ("OAK-D streaming", "myAHRS+ no device (...)")

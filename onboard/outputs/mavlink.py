@@ -104,6 +104,7 @@ class MavlinkStats:
     link_up: bool = False
     signature_rejects: int = 0  # received messages unsigned or wrongly signed (signing on)
     sent_by_type: dict[str, int] = field(default_factory=dict)
+    received: int = 0  # messages from the peer (0 over UDP: nobody may be listening)
 
 
 class SharedLink(Protocol):
@@ -409,6 +410,8 @@ class MavlinkOutput:
 
     def _on_message(self, msg: Any) -> None:
         kind = msg.get_type()
+        with self._lock:
+            self._stats.received += 1
         if kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
             with self._lock:
                 self._stats.signature_rejects += 1

@@ -385,6 +385,7 @@ class ZenohOutput:
             "uptime_s": now - self._start,
             "state": state,
             "health_reason": None if health is None else health.reason,
+            "devices": [] if health is None else list(health.devices),  # each driver's state
             "quality": 0 if last is None else tracking_quality(last),
             "lost_reason": None if last is None else last.lost_reason,
             "frame_hz": p["frames"] / span,
