@@ -35,6 +35,7 @@ import numpy as np
 from onboard.app.bench import pin_one_core
 from onboard.app.config import Config, config_to_toml
 from onboard.app.health import HealthMonitor, HealthThresholds
+from onboard.app.latency import LATENCY_FILE, LoopTiming, attach_timing
 from onboard.app.loop_stats import LoopStats, RunResult, jsonable, stats_line, write_run_json
 from onboard.app.replay import (
     CONFIG_FILE,
@@ -106,12 +107,16 @@ class Service:
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
         self._output_stats: dict[str, dict[str, Any]] = {}  # each output's counters at the end
+        # Per-frame latency and stage times (onboard/app/latency.py); latency.csv with --out.
+        self.timing = LoopTiming(sources.host_time_s,
+                                 None if out_dir is None else out_dir / LATENCY_FILE)
 
     def run(self) -> RunResult:
         pin_one_core()
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)
+        attach_timing(outputs, self.timing, t_start)
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop, and compile
         # the tracker's kernels (or load them from numba's cache) before the
@@ -142,6 +147,7 @@ class Service:
             if deadline is not None and now >= deadline:
                 break
             self.stats.loop_turns += 1
+            self.timing.tick(now)
             self.notifier.watchdog()
             if self.tracker is None and not self._make_tracker(poll):
                 self._idle(outputs, now)
@@ -176,16 +182,24 @@ class Service:
     def _frame(self, outputs: Output, frame: Any) -> None:
         tracker = self.tracker
         assert tracker is not None
+        timing = self.timing
+        timing.frame_start(frame.t_s)
         self._wait_for_attitude(frame.t_s)
+        timing.lap()
         t0 = time.perf_counter()
         result = tracker.track(frame, self.sources.attitude)
+        timing.lap()
         outputs.publish(result)
+        timing.lap()
         ms = (time.perf_counter() - t0) * 1e3
         now = time.monotonic()
         report = self.health.on_frame(
             now, result, tracker.fallback.name if tracker.fallback is not None else None)
         self._report(outputs, report)
         self._log_result(result, ms)
+        timing.lap()
+        timing.frame_end(result.trusted and result.p_W_m is not None,
+                         report.state is Health.TRACKING)
         if not self.ready:
             self.ready = True
             self.notifier.ready(f"tracking with {tracker.name}: first frame in")
@@ -270,6 +284,13 @@ class Service:
         s.period_frames = 0
         s.period_start_s = now
 
+    def _frames_offered(self) -> int:
+        """Frames the source had for us: into the camera's slot, or skipped
+        by a replay that could not decode them in time."""
+        slot = getattr(self.sources.camera, "slot", None)
+        put = self.stats.frames if slot is None else int(slot.stats.put)
+        return put + int(getattr(self.sources.camera, "late", 0))
+
     def _dropped(self) -> int:
         slot = getattr(self.sources.camera, "slot", None)
         return 0 if slot is None else int(slot.stats.dropped)
@@ -310,6 +331,8 @@ class Service:
         }
         if self.sources.source_stats is not None:
             metrics["source_stats"] = self.sources.source_stats()
+        self.timing.flush_csv()
+        metrics["latency_lines"] = self.timing.summary_lines(self._output_stats)
         if self.sources.host_mapping is not None:
             # The MAVLink feed's time_usec is on the host's monotonic clock; the
             # trajectories keep the recording's stamps: how one maps onto the other.
@@ -332,12 +355,14 @@ class Service:
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             write_text_atomic(self.out_dir / CONFIG_FILE, config_to_toml(self.cfg))
+            kept = {k: v for k, v in metrics.items() if k != "latency_lines"}
             write_text_atomic(self.out_dir / METRICS_FILE,
-                              json.dumps(jsonable(metrics), indent=2, allow_nan=False) + "\n")
+                              json.dumps(jsonable(kept), indent=2, allow_nan=False) + "\n")
             zs = self._output_stats.get("zenoh")
             write_run_json(self.out_dir, {
                 "keyframes_published": None if zs is None else zs["keyframes_published"],
                 "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
+                **self.timing.run_fields(self._frames_offered(), s.resets, self._output_stats),
                 "outputs": self._output_stats,
             })
         return RunResult(metrics, self.out_dir)

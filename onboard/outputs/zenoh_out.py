@@ -253,6 +253,10 @@ class ZenohOutput:
             "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._status_tick)
         self._map_worker: Worker[KeyframeCloud] = Worker("zenoh-map", self._put_keyframe, 256)
         self._closed = False
+        # Set by the service (onboard.app.latency.attach_timing): the loop's
+        # latency, TIMESYNC and delay advice in the status; encode-and-put times.
+        self.status_extra: Callable[[], dict[str, Any]] | None = None
+        self.on_stage: Callable[[str, float], None] | None = None
 
     # ------------------------------------------------------------- Output API
     def publish(self, result: TrackResult) -> None:
@@ -347,6 +351,7 @@ class ZenohOutput:
         ent = self._entities
         if ent is None:
             return  # not connected yet (a client waiting for its router)
+        t0 = time.perf_counter()
         msg = pose_message(result, self._seq)
         msg["boot"] = self.boot
         msg["sent_unix_s"] = time.time()  # latency on the ground (clocks synchronised)
@@ -354,6 +359,8 @@ class ZenohOutput:
         self._seq += 1
         ent.pose.put(data)
         self._bytes["pose"] += len(data)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_pose_encode_put", (time.perf_counter() - t0) * 1e3)
 
     def _status_tick(self) -> float:
         now = self._clock()
@@ -367,8 +374,11 @@ class ZenohOutput:
         ent = self._entities
         if ent is None:
             return
+        t0 = time.perf_counter()
         data = json.dumps(self._status(now), allow_nan=False)
         ent.status.put(data)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_status_encode_put", (time.perf_counter() - t0) * 1e3)
         self._bytes["status"] += len(data)
 
     def _status(self, now: float) -> dict[str, Any]:
@@ -393,14 +403,18 @@ class ZenohOutput:
             "psr_mean": p["psr_sum"] / p["psr_n"] if p["psr_n"] else None,
             "resets": 0 if last is None else int(last.reset_counter),
             **self.stats(),
+            **(self.status_extra() if self.status_extra is not None else {}),
         }
         self._period = {"frames": 0, "tracked": 0, "psr_sum": 0.0, "psr_n": 0}
         self._period_start = now
         return out
 
     def _put_keyframe(self, cloud: KeyframeCloud) -> None:
+        t0 = time.perf_counter()
         kf = MapKeyframe.from_cloud(cloud)
         data = encode_keyframe(kf)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_map_encode", (time.perf_counter() - t0) * 1e3)
         self._store(kf.keyframe_id, data, kf.num_points)
         delay_s = self._rate.delay_s(len(data), self._clock())
         if delay_s > 0:  # the map rate limit; ends at close (flush what is left)
