@@ -157,6 +157,12 @@ class LoopTiming:
             return
         self._close_minute(now, verbose_line)
 
+    def finish(self) -> None:
+        """The end of the run: the last (partial) minute's figures, the CSV's last rows."""
+        if self._minute["done"].n:
+            self._close_minute(time.monotonic(), lambda _line: None)
+        self.flush_csv()
+
     def _close_minute(self, now: float, verbose_line: Callable[[str], None] | None) -> None:
         start = self._minute_start if self._minute_start is not None else now
         entry = {"t_s": now, "seconds": now - start,

@@ -54,6 +54,7 @@ from onboard.outputs.mavlink_signing import enable_signing, load_signing_key
 from onboard.outputs.mavlink_stats import MavlinkStats, SharedLink
 from onboard.outputs.mavlink_timesync import PACKET_BYTES, TimesyncClock
 from onboard.outputs.settings import MavlinkConfig
+from onboard.outputs.wake import Wake
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ class MavlinkOutput:
         self._lock = threading.Lock()
         self._stats = MavlinkStats()
         self._stop = threading.Event()
-        self._cond = threading.Condition()  # wake-ups only: held for an instant
+        self._wakeup = Wake()  # never makes the loop wait (onboard/outputs/wake.py)
         self._conn: Any = None
         self._link_dead: str | None = None
         self._next_open = 0.0
@@ -145,8 +146,7 @@ class MavlinkOutput:
         if len(self._queue) == self._queue.maxlen:
             self._stats.dropped += 1
         self._queue.append(result)
-        with self._cond:
-            self._cond.notify()
+        self._wakeup.set()
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         pass  # the flight controller has no use for the map
@@ -167,7 +167,7 @@ class MavlinkOutput:
         if self._stop.is_set():
             return
         self._stop.set()
-        self._wake()
+        self._wakeup.set_now()
         self._thread.join(timeout_s)
         if self._remove_listener is not None:
             self._remove_listener()
@@ -204,14 +204,14 @@ class MavlinkOutput:
 
     # ------------------------------------------------------------- the thread
     def _wake(self) -> None:
-        # A condition, not a pipe: notify() makes no system call that would let
-        # the woken thread take the GIL in the middle of the loop's publish().
-        with self._cond:
-            self._cond.notify()
+        self._wakeup.set()  # the loop's calls: deferred to its frame's end in the service
+
+    def wakeups(self) -> tuple[Wake, ...]:
+        return (self._wakeup,)
 
     def _on_shared_message(self, msg: Any, t_ns: int) -> None:
         self._rx.append((msg, t_ns))  # on the link's reader thread: hand over, wake, return
-        self._wake()
+        self._wakeup.set_now()
 
     @property
     def _link_open(self) -> bool:
@@ -265,7 +265,8 @@ class MavlinkOutput:
             if ts1 is not None and self._send("timesync", 0, ts1):
                 with self._lock:
                     self._stats.timesync_requests += 1
-                self._await_answer(ts1)
+                if self.timesync.answers:  # a peer that never answers costs no wait
+                    self._await_answer(ts1)
         if self._link_open and self._origin.due(now):
             for name, args in self._origin.messages(now, self._clock_ns() // 1000):
                 self._send(name, *args)
@@ -285,10 +286,9 @@ class MavlinkOutput:
         timeout = min(0.5, max(0.0, min(deadlines) - now))
         if self._conn is not None:
             timeout = min(timeout, RX_POLL_S)  # our own link: look for TIMESYNC requests
-        with self._cond:
-            idle = not (self._queue or self._rx or self._health_texts)
-            if idle and not self._stop.is_set():
-                self._cond.wait(timeout)
+        idle = not (self._queue or self._rx or self._health_texts)
+        if idle and not self._stop.is_set():
+            self._wakeup.wait(timeout)  # a signal set before it returns at once
 
     # ------------------------------------------------------------- link
     def _open_link(self, now: float) -> None:
@@ -403,9 +403,8 @@ class MavlinkOutput:
             self._on_message(msg, self._clock_ns())
 
     def _await_answer(self, ts1: int) -> None:
-        """Read our own link as data comes until the answer to `ts1` is in
-        (ANSWER_WAIT_S at most): polled every RX_POLL_S, it would wait up to
-        2 ms, half of it offset error. A shared link stamps on its reader."""
+        """Read our link as data comes until `ts1` is answered (ANSWER_WAIT_S at
+        most): polled every RX_POLL_S, it could wait 2 ms, half of it offset error."""
         deadline = time.monotonic() + ANSWER_WAIT_S
         while self._conn is not None and self.timesync.pending(ts1):
             left = deadline - time.monotonic()

@@ -82,6 +82,7 @@ from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, Trac
 from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
 from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.wake import Wake
 from onboard.outputs.zenoh_session import (
     Worker,
     key_prefix,
@@ -266,6 +267,10 @@ class ZenohOutput:
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         self._map_worker.put(cloud)
+
+    def wakeups(self) -> tuple[Wake, ...]:
+        """The publisher threads' wake-ups (onboard/outputs/wake.py)."""
+        return (self._pose_worker.wakeup, self._map_worker.wakeup)
 
     def publish_health(self, report: HealthReport) -> None:
         self._health = report  # one attribute store; the pose thread reads it
