@@ -111,6 +111,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                  ("plain", "other"))]
     print("median by frame kind: " + ", ".join(
         f"{label} {ms:.2f} ms ({n})" for label, n, ms in kinds if ms is not None))
+    print("stages (p50 / p99 ms, n): " + ", ".join(
+        f"{name} {st['p50']:.2f} / {st['p99']:.2f} ({st['n']})"
+        for name, st in stats["stages_ms"].items() if st["n"]))
     return 0
 
 

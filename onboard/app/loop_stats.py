@@ -93,6 +93,7 @@ class RunResult:
             f"per frame   median {_ms(m['frame_ms_median'])}, p95 {_ms(m['frame_ms_p95'])}, "
             f"max {_ms(m['frame_ms_max'])} (track + publish)",
             f"health      {m['health']} at the end; {m['health_changes']} changes",
+            *m.get("latency_lines", []),  # onboard/app/latency.py
         ]
         if m.get("ate_rmse_m") is not None:
             lines.append(f"ATE RMSE    {m['ate_rmse_m']:.4f} m over {m['frames_evaluated']} "

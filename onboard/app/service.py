@@ -43,6 +43,7 @@ from onboard.app.loop_stats import (
     stats_line,
     write_run_json,
 )
+from onboard.app.latency import LATENCY_FILE, LoopTiming, attach_timing
 from onboard.app.replay import (
     CONFIG_FILE,
     GT_AT_FRAMES_FILE,
@@ -65,6 +66,7 @@ from onboard.fusion.registry import make_tracker
 from onboard.fusion.switching import SwitchingTracker
 from onboard.nislam import kernels
 from onboard.outputs.group import Output, make_outputs
+from onboard.outputs.wake import Wake, defer_wakeups
 
 log = logging.getLogger(__name__)
 
@@ -122,12 +124,17 @@ class Service:
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
         self._output_stats: dict[str, dict[str, Any]] = {}  # each output's counters at the end
+        self._wakes: list[Wake] = []
+        # Per-frame latency and stage times (onboard/app/latency.py); latency.csv with --out.
+        self.timing = LoopTiming(sources.host_time_s,
+                                 None if out_dir is None else out_dir / LATENCY_FILE)
 
     def run(self) -> RunResult:
         pin_one_core()
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)
+        attach_timing(outputs, self.timing, t_start)
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop; start the
         # sensors, then compile the tracker's kernels (or load them from
@@ -135,6 +142,9 @@ class Service:
         # a second or two of start, and frames that arrive during the warm-up
         # are only replaced in the newest-frame slot.
         self._report(outputs, self.health.on_idle(time.monotonic()))
+        # From here the outputs' threads are woken once a turn, when the loop
+        # is done with its frame (onboard/outputs/wake.py: p95 12 ms saved).
+        self._wakes = defer_wakeups(outputs)
         self.sources.start()
         kernels.warm_up()
         if self.live is not None:
@@ -162,6 +172,9 @@ class Service:
             if deadline is not None and now >= deadline:
                 break
             self.stats.loop_turns += 1
+            for wake in self._wakes:  # what the last turn handed to the outputs
+                wake.flush()
+            self.timing.tick(now)
             self.notifier.watchdog()
             if self.tracker is None and not self._make_tracker(poll):
                 self._idle(outputs, now)
@@ -196,16 +209,24 @@ class Service:
     def _frame(self, outputs: Output, frame: Any) -> None:
         tracker = self.tracker
         assert tracker is not None
+        timing = self.timing
+        timing.frame_start(frame.t_s)
         self._wait_for_attitude(frame.t_s)
+        timing.lap()
         t0 = time.perf_counter()
         result = self.gate.check(tracker.track(frame, self.sources.attitude))
+        timing.lap()
         outputs.publish(result)
+        timing.lap()
         ms = (time.perf_counter() - t0) * 1e3
         now = time.monotonic()
         report = self.health.on_frame(
             now, result, tracker.fallback.name if tracker.fallback is not None else None)
         self._report(outputs, report)
         self._log_result(result, ms)
+        timing.lap()
+        timing.frame_end(result.trusted and result.p_W_m is not None,
+                         report.state is Health.TRACKING)
         if not self.ready:
             self.ready = True
             self.notifier.ready(f"tracking with {tracker.name}: first frame in")
@@ -295,6 +316,13 @@ class Service:
         s.period_frames = 0
         s.period_start_s = now
 
+    def _frames_offered(self) -> int:
+        """Frames the source had for us: into the camera's slot, or skipped
+        by a replay that could not decode them in time."""
+        slot = getattr(self.sources.camera, "slot", None)
+        put = self.stats.frames if slot is None else int(slot.stats.put)
+        return put + int(getattr(self.sources.camera, "late", 0))
+
     def _dropped(self) -> int:
         slot = getattr(self.sources.camera, "slot", None)
         return 0 if slot is None else int(slot.stats.dropped)
@@ -336,6 +364,8 @@ class Service:
         }
         if self.sources.source_stats is not None:
             metrics["source_stats"] = self.sources.source_stats()
+        self.timing.finish()
+        metrics["latency_lines"] = self.timing.summary_lines(self._output_stats)
         if self.sources.host_mapping is not None:
             # The MAVLink feed's time_usec is on the host's monotonic clock; the
             # trajectories keep the recording's stamps: how one maps onto the other.
@@ -365,13 +395,15 @@ class Service:
             with attempt(out / CONFIG_FILE, out / METRICS_FILE):
                 out.mkdir(parents=True, exist_ok=True)
                 write_text_atomic(out / CONFIG_FILE, config_to_toml(self.cfg))
+                kept = {k: v for k, v in metrics.items() if k != "latency_lines"}
                 write_text_atomic(out / METRICS_FILE,
-                                  json.dumps(jsonable(metrics), indent=2, allow_nan=False) + "\n")
+                                  json.dumps(jsonable(kept), indent=2, allow_nan=False) + "\n")
             zs = self._output_stats.get("zenoh")
             with attempt(out / RUN_FILE):
                 write_run_json(out, {
                     "keyframes_published": None if zs is None else zs["keyframes_published"],
                     "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
+                    **self.timing.run_fields(self._frames_offered(), s.resets, self._output_stats),
                     "outputs": self._output_stats,
                 })
         notes = metrics["output_notes"]

@@ -82,6 +82,7 @@ from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, Trac
 from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
 from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.wake import Wake
 from onboard.outputs.zenoh_session import (
     Worker,
     key_prefix,
@@ -253,6 +254,10 @@ class ZenohOutput:
             "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._status_tick)
         self._map_worker: Worker[KeyframeCloud] = Worker("zenoh-map", self._put_keyframe, 256)
         self._closed = False
+        # Set by the service (onboard.app.latency.attach_timing): the loop's
+        # latency, TIMESYNC and delay advice in the status; encode-and-put times.
+        self.status_extra: Callable[[], dict[str, Any]] | None = None
+        self.on_stage: Callable[[str, float], None] | None = None
 
     # ------------------------------------------------------------- Output API
     def publish(self, result: TrackResult) -> None:
@@ -262,6 +267,10 @@ class ZenohOutput:
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         self._map_worker.put(cloud)
+
+    def wakeups(self) -> tuple[Wake, ...]:
+        """The publisher threads' wake-ups (onboard/outputs/wake.py)."""
+        return (self._pose_worker.wakeup, self._map_worker.wakeup)
 
     def publish_health(self, report: HealthReport) -> None:
         self._health = report  # one attribute store; the pose thread reads it
@@ -347,6 +356,7 @@ class ZenohOutput:
         ent = self._entities
         if ent is None:
             return  # not connected yet (a client waiting for its router)
+        t0 = time.perf_counter()
         msg = pose_message(result, self._seq)
         msg["boot"] = self.boot
         msg["sent_unix_s"] = time.time()  # latency on the ground (clocks synchronised)
@@ -354,6 +364,8 @@ class ZenohOutput:
         self._seq += 1
         ent.pose.put(data)
         self._bytes["pose"] += len(data)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_pose_encode_put", (time.perf_counter() - t0) * 1e3)
 
     def _status_tick(self) -> float:
         now = self._clock()
@@ -367,8 +379,11 @@ class ZenohOutput:
         ent = self._entities
         if ent is None:
             return
+        t0 = time.perf_counter()
         data = json.dumps(self._status(now), allow_nan=False)
         ent.status.put(data)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_status_encode_put", (time.perf_counter() - t0) * 1e3)
         self._bytes["status"] += len(data)
 
     def _status(self, now: float) -> dict[str, Any]:
@@ -394,14 +409,18 @@ class ZenohOutput:
             "psr_mean": p["psr_sum"] / p["psr_n"] if p["psr_n"] else None,
             "resets": 0 if last is None else int(last.reset_counter),
             **self.stats(),
+            **(self.status_extra() if self.status_extra is not None else {}),
         }
         self._period = {"frames": 0, "tracked": 0, "psr_sum": 0.0, "psr_n": 0}
         self._period_start = now
         return out
 
     def _put_keyframe(self, cloud: KeyframeCloud) -> None:
+        t0 = time.perf_counter()
         kf = MapKeyframe.from_cloud(cloud)
         data = encode_keyframe(kf)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_map_encode", (time.perf_counter() - t0) * 1e3)
         self._store(kf.keyframe_id, data, kf.num_points)
         delay_s = self._rate.delay_s(len(data), self._clock())
         if delay_s > 0:  # the map rate limit; ends at close (flush what is left)
