@@ -284,6 +284,7 @@ class Service:
             tl.q_W_C_xyzw.append(q)
             if self.live is not None:
                 self.live.append(result.t_s, result.p_W_m, q)
+            tl.reference_keyframe_id.append(result.reference_keyframe_id)
 
     def _maybe_stats(self, now: float) -> None:
         s = self.stats
