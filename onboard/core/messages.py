@@ -103,6 +103,10 @@ class TrackResult:
     matched_cells: int
     finished_keyframes: tuple[KeyframeCloud, ...] = ()
     keyframe_reused: bool = False  # the frame switched to a key kept from before (not a new one)
+    # The fused tracker (onboard.fusion.fused): the trackers whose motion this
+    # frame's pose used, and (tracker, why) for each one left out.
+    contributors: tuple[str, ...] = ()
+    left_out: tuple[tuple[str, str], ...] = ()
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

@@ -1,0 +1,30 @@
+"""Fusion parameters (the `[fusion]` configuration section), read by
+`onboard.fusion.fused.FusedTracker`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Filter, gate and measurement-noise settings of the fused tracker; the
+    figures behind the defaults are in docs/fusion.md."""
+
+    # Motion model: constant velocity driven by white acceleration (m/s^2, 1 sigma).
+    accel_sd_m_s2: float = 6.0
+    initial_speed_sd_m_s: float = 0.5  # velocity is unknown at the first pose
+    # Gate: a tracker's motion whose squared Mahalanobis distance to the
+    # prediction (3 dof) exceeds this is left out (16.3: chi-square 99.9 %).
+    gate_chi2: float = 16.3
+    rejoin_after_frames: int = 3  # left out by the gate this many frames in a row: re-anchored
+    # Measurement noise: the trackers' own variances scaled (calibrated on the
+    # synthetic flights so that the reported 1 sigma covers ~68 % of the error).
+    nislam_var_scale: float = 1.0
+    fastorb_var_scale: float = 1.0
+    psr_full: float = 20.0  # NI-SLAM: below this PSR the variance grows as (psr_full / PSR)^2
+    min_sd_m: float = 0.001  # floor of a measurement's position sd (per axis)
+    # Output
+    max_coast_s: float = 0.2  # no tracker for longer than this: lost (then reset_counter + 1)
+    quality_sd_m: float = 0.002  # a motion measured this well (fused sd) has quality 100
