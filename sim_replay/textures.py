@@ -27,6 +27,7 @@ _BASE_BGR = {
     "tiles_floor": (0.55, 0.58, 0.60),
     "cardboard": (0.36, 0.52, 0.66),
     "concrete": (0.58, 0.58, 0.56),
+    "paint": (0.74, 0.76, 0.78),  # smooth emulsion: no grain, no spots (textureless)
 }
 MATERIALS = tuple(_BASE_BGR)
 
@@ -156,6 +157,10 @@ def make_texture(material: str, size_px: tuple[int, int], texel_m: float, seed: 
     elif material == "concrete":
         img *= (1.0 + 0.28 * grain + 0.15 * blotch)[..., None]
         _spots(rng, img, 1500.0, texel_m, (0.001, 0.006), 0.35)
+    elif material == "paint":
+        # Only a faint, broad unevenness: no corner for a keypoint detector;
+        # what a camera still sees is the shading between differently lit faces.
+        img *= (1.0 + 0.02 * blotch)[..., None]
     else:  # plaster
         img *= (1.0 + 0.2 * grain + 0.1 * blotch)[..., None]
         _spots(rng, img, 600.0, texel_m, (0.002, 0.015), 0.3)

@@ -126,8 +126,24 @@ def test_output_does_not_jump_when_a_tracker_drops_out_and_comes_back() -> None:
     assert results[100].contributors == ("nislam",)
     stats = fused.stats()["trackers"]
     assert stats["nislam"]["left_out"]["lost: too few inliers"] == 30
-    assert stats["nislam"]["reanchored"]["joined"] == 2  # at the start and back at 60
+    # Back in a shifted world: out of the gate, so tied back in at once.
+    assert stats["nislam"]["reanchored"] == {"joined": 1, "restarted": 1}
+    assert stats["nislam"]["left_out"]["restarted"] == 1
     assert stats["fastorb"]["left_out"]["lost: too few inliers"] == 30
+    assert stats["fastorb"]["reanchored"] == {"joined": 1, "restarted": 1}
+
+
+def test_a_tracker_back_in_its_old_world_keeps_its_anchor() -> None:
+    # FastORB re-localises into its map after a lost spell (its own reset
+    # counter moves, its world does not): measured again, not re-anchored.
+    def reloc(i: int) -> tuple[np.ndarray, int, int] | None:
+        return None if 40 <= i < 50 else (np.zeros(3), i // 10, int(i >= 50))
+
+    fused, results = run(steady, reloc, 80)
+    fo = fused.stats()["trackers"]["fastorb"]
+    assert fo["reanchored"] == {"joined": 1}
+    assert fo["frames_used"] == 80 - 1 - 10
+    assert results[50].contributors == ("nislam", "fastorb")
 
 
 def test_without_either_tracker_it_coasts_then_is_lost_and_resets_once() -> None:

@@ -15,10 +15,16 @@ is linear, so the filter is exact (the error state is the state):
              else): motion measured afterwards is relative to a position known
              only as well as p was. Drift accumulates exactly there.
 
-A tracker matches its frames against a key (NI-SLAM) or a local map
-(FastORB), so its error is about constant between key changes and steps at
-each; anchoring at its key changes keeps that structure: within a key the
-measurements are relative to one anchor, and across keys the uncertainty grows.
+  drift      a_i's covariance grows by Q (`diffuse`) when tracker i makes a
+             new key: the tracker's world itself drifts there.
+
+A tracker matches its frames against a key (NI-SLAM) or a local map of
+landmarks (FastORB), so its error is about constant while it uses one key and
+steps when it makes a new one, from the pose it made it at; back on an old key
+(NI-SLAM's key re-use, FastORB's landmarks seen again) the error is what it
+was. Modelling that drift on the anchor, rather than re-anchoring at each key,
+keeps each tracker's own consistency: a tracker returning to an old key
+measures the position it had there, and the filter uses that.
 """
 
 from __future__ import annotations
@@ -105,6 +111,12 @@ class AnchoredFilter:
         IKH[:, :3] -= K
         IKH[:, s] += K
         self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
+
+    def diffuse(self, i: int, Q: np.ndarray) -> None:
+        """The tracker's world drifted by an unknown step of covariance Q
+        relative to its anchor (it made a new key from a pose with that error)."""
+        s = self._sl(i)
+        self.P[s, s] += Q
 
     def anchor(self, i: int) -> None:
         """a_i := p (a clone: the anchor shares p's error)."""

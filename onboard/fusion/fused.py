@@ -17,7 +17,8 @@ Per frame:
   4. gate: a measurement whose squared Mahalanobis distance to the
      prediction exceeds `gate_chi2` is left out, unless both trackers fail it
      and agree with each other (then the prediction was wrong, not they);
-  5. update with the rest; a tracker whose key changed, that restarted
+  5. update with the rest; a tracker that made a new key drifts from there
+     (its anchor's covariance grows by its pose covariance); one that restarted
      (its reset_counter moved), that comes back after a lost spell, or that
      the gate left out `rejoin_after_frames` frames in a row is re-anchored:
      its anchor becomes the fused position, so it is tied back into the
@@ -54,6 +55,16 @@ AHRS_ROT_VAR = 2.0 * 4.592449e-6  # rad^2, as NI-SLAM reports for the AHRS attit
 GATED = "disagrees (gate)"
 
 
+def fusion_text(r: TrackResult) -> str:
+    """One line for health and status: which trackers the fused pose used
+    and why another was left out, e.g. "fastorb only; nislam: lost: too few
+    depth pixels"."""
+    used = "+".join(r.contributors) if r.contributors else "no tracker"
+    if len(r.contributors) == 1:
+        used += " only"
+    return "; ".join([used, *(f"{name}: {why}" for name, why in r.left_out)])
+
+
 @dataclass
 class _Link:
     """One tracker tied into the fused world through its anchor."""
@@ -66,6 +77,7 @@ class _Link:
     p_anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
     R_map: np.ndarray = field(default_factory=lambda: np.eye(3))  # its world's axes in W
     gated_run: int = 0  # frames in a row the gate left it out
+    fresh: str | None = None  # back from a lost spell or a restart: why (until measured again)
     used: int = 0
     left_out: collections.Counter = field(default_factory=collections.Counter)
     reanchors: collections.Counter = field(default_factory=collections.Counter)
@@ -152,16 +164,14 @@ class FusedTracker:
                 reason = f"lost: {r.lost_reason or 'untrusted'}"
                 link.left_out[reason] += 1
                 left_out.append((link.name, reason))
-                link.anchored = False
+                link.fresh = link.fresh or "back after lost"
                 continue
             if not link.anchored:
                 to_anchor.append((link, r, "joined"))
                 continue
             if r.reset_counter != link.resets:
-                to_anchor.append((link, r, "restarted"))
-                link.left_out["restarted"] += 1
-                left_out.append((link.name, "restarted"))
-                continue
+                link.resets = r.reset_counter
+                link.fresh = "restarted"
             R = COVARIANCE_MODELS.get(link.name, COVARIANCE_MODELS["fastorb"])(r, self.p)
             if not np.all(np.isfinite(R)):
                 link.left_out["no covariance"] += 1
@@ -175,19 +185,26 @@ class FusedTracker:
             self.filter.update(link.index, z, R)
             link.used += 1
             link.gated_run = 0
+            link.fresh = None  # back in the world it had: its anchor holds
             link.nis_sum += nis
             link.nis_n += 1
         for link, r, z, R, nis in gated:
+            # Back from a restart or a lost spell in a world of its own (a new
+            # map, a restart at a stale position): tied back in at once.
+            why = link.fresh or GATED
             link.gated_run += 1
-            link.left_out[GATED] += 1
-            left_out.append((link.name, f"{GATED}, chi2 {nis:.0f}"))
-            log.debug("t=%.3f: %s left out, chi2 %.1f", t_s, link.name, nis)
-            if link.gated_run >= self.p.rejoin_after_frames:
-                to_anchor.append((link, r, "disagreed"))
-        # A new key: later motion is measured from it (after this frame's update).
-        for link, r, z, R, nis in accepted:
+            link.left_out[why] += 1
+            left_out.append((link.name, f"{why}, chi2 {nis:.0f}"))
+            log.debug("t=%.3f: %s left out (%s), chi2 %.1f", t_s, link.name, why, nis)
+            if link.fresh is not None or link.gated_run >= self.p.rejoin_after_frames:
+                to_anchor.append((link, r, link.fresh or "disagreed"))
+        # A new key: the tracker's world drifts from here by the error of the
+        # pose the key was made at (filter docstring); a key re-used does not.
+        for link, r, z, R, nis in accepted + gated:
             if r.keyframe_id != link.key_id:
-                to_anchor.append((link, r, None))
+                if not r.keyframe_reused:
+                    self.filter.diffuse(link.index, R * self.p.key_drift_scale)
+                link.key_id = r.keyframe_id
         for link, r, why in to_anchor:
             self._anchor(link, r, R_att, why)
 
@@ -232,7 +249,7 @@ class FusedTracker:
         self._started, self._lost = True, False
         self._last_update_s = t_s
         for link in self.links:
-            link.anchored = False
+            link.anchored, link.fresh = False, None
 
     def _anchor(self, link: _Link, r: TrackResult, R_att: np.ndarray | None, why: str | None) -> None:
         self.filter.anchor(link.index)
@@ -240,6 +257,7 @@ class FusedTracker:
         link.key_id = r.keyframe_id
         link.resets = r.reset_counter
         link.gated_run = 0
+        link.fresh = None
         link.p_anchor = np.asarray(r.p_W_m, dtype=np.float64).copy()
         if R_att is not None:  # without the AHRS the last mapping stays
             link.R_map = R_att @ np.asarray(r.R_W_C).T

@@ -12,8 +12,9 @@ class FusionParams:
     """Filter, gate and measurement-noise settings of the fused tracker; the
     figures behind the defaults are in docs/fusion.md."""
 
-    # Motion model: constant velocity driven by white acceleration (m/s^2, 1 sigma).
-    accel_sd_m_s2: float = 6.0
+    # Motion model: constant velocity driven by white acceleration, its spectral
+    # density's square root (m/s^2 per sqrt(Hz)): velocity sd grows by this * sqrt(dt).
+    accel_sd_m_s2: float = 5.0
     initial_speed_sd_m_s: float = 0.5  # velocity is unknown at the first pose
     # Gate: a tracker's motion whose squared Mahalanobis distance to the
     # prediction (3 dof) exceeds this is left out (16.3: chi-square 99.9 %).
@@ -23,6 +24,7 @@ class FusionParams:
     # synthetic flights so that the reported 1 sigma covers ~68 % of the error).
     nislam_var_scale: float = 1.0
     fastorb_var_scale: float = 1.0
+    key_drift_scale: float = 1.0  # a new key: the tracker's world drifts by its pose covariance times this
     psr_full: float = 20.0  # NI-SLAM: below this PSR the variance grows as (psr_full / PSR)^2
     min_sd_m: float = 0.001  # floor of a measurement's position sd (per axis)
     # Output
