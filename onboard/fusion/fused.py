@@ -43,8 +43,10 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Tracker, TrackResult, TrackState
+from onboard.core.rotations import so3_log
 from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.measurements import COVARIANCE_MODELS
 from onboard.fusion.params import FusionParams
@@ -170,8 +172,13 @@ class FusedTracker:
                 to_anchor.append((link, r, "joined"))
                 continue
             if r.reset_counter != link.resets:
+                # Re-localised into its map, or a new map: where it stands in
+                # its world is now known only to `rejoin_sd_m` (its map is
+                # off by different amounts in different places), so it is
+                # measured against its anchor loosened by that much.
                 link.resets = r.reset_counter
                 link.fresh = "restarted"
+                self.filter.diffuse(link.index, np.eye(3) * self.p.rejoin_sd_m**2)
             R = COVARIANCE_MODELS.get(link.name, COVARIANCE_MODELS["fastorb"])(r, self.p)
             if not np.all(np.isfinite(R)):
                 link.left_out["no covariance"] += 1
@@ -180,6 +187,8 @@ class FusedTracker:
             z = link.R_map @ (r.p_W_m - link.p_anchor)
             measured.append((link, r, z, R, self.filter.nis(link.index, z, R)))
 
+        for link, r, z, R, nis in measured:
+            self._follow_axes(link, r, R_att)
         accepted, gated = self._gate(measured)
         for link, r, z, R, nis in accepted:
             self.filter.update(link.index, z, R)
@@ -199,12 +208,11 @@ class FusedTracker:
             if link.fresh is not None or link.gated_run >= self.p.rejoin_after_frames:
                 to_anchor.append((link, r, link.fresh or "disagreed"))
         # A new key: the tracker's world drifts from here by the error of the
-        # pose the key was made at (filter docstring); a key re-used does not.
+        # pose the key was made at (filter docstring).
         for link, r, z, R, nis in accepted + gated:
-            if r.keyframe_id != link.key_id:
-                if not r.keyframe_reused:
-                    self.filter.diffuse(link.index, R * self.p.key_drift_scale)
-                link.key_id = r.keyframe_id
+            if r.keyframe_id != link.key_id and not r.keyframe_reused:
+                self.filter.diffuse(link.index, R * self.p.key_drift_scale)
+            link.key_id = r.keyframe_id
         for link, r, why in to_anchor:
             self._anchor(link, r, R_att, why)
 
@@ -250,6 +258,17 @@ class FusedTracker:
         self._last_update_s = t_s
         for link in self.links:
             link.anchored, link.fresh = False, None
+
+    def _follow_axes(self, link: _Link, r: TrackResult, R_att: np.ndarray | None) -> None:
+        """Refine the tracker's axes in W, R_i = mean of R_W_C(AHRS) R_i_C^T: one
+        frame's pair is off by the attitude's noise and time offset (a degree
+        turns a metre of motion by 1.7 cm), and FastORB's world slowly turns
+        against the AHRS. A small step towards this frame's pair each frame
+        (`axes_gain`): an exponential mean on SO(3)."""
+        if R_att is None or self.p.axes_gain <= 0.0:
+            return
+        d = so3_log(link.R_map.T @ R_att @ np.asarray(r.R_W_C).T)
+        link.R_map = link.R_map @ Rotation.from_rotvec(self.p.axes_gain * d).as_matrix()
 
     def _anchor(self, link: _Link, r: TrackResult, R_att: np.ndarray | None, why: str | None) -> None:
         self.filter.anchor(link.index)
