@@ -14,11 +14,11 @@ class FusionParams:
 
     # Motion model: constant velocity driven by white acceleration, its spectral
     # density's square root (m/s^2 per sqrt(Hz)): velocity sd grows by this * sqrt(dt).
-    accel_sd_m_s2: float = 5.0
+    accel_sd_m_s2: float = 1.5
     initial_speed_sd_m_s: float = 0.5  # velocity is unknown at the first pose
     # Gate: a tracker's motion whose squared Mahalanobis distance to the
-    # prediction (3 dof) exceeds this is left out (16.3: chi-square 99.9 %).
-    gate_chi2: float = 16.3
+    # prediction (3 dof) exceeds this is left out (12: chi-square 99.3 %).
+    gate_chi2: float = 12.0
     rejoin_sd_m: float = 0.1  # a tracker that restarted: its world's offset known to this sd
     rejoin_after_frames: int = 3  # left out by the gate this many frames in a row: re-anchored
     # Measurement noise: the trackers' own variances scaled (calibrated on the
