@@ -10,7 +10,8 @@ import numpy as np
 from fake_results import track_result
 from scipy.spatial.transform import Rotation
 
-from onboard.core.messages import RgbdFrame, TrackResult
+from onboard.app.health import HealthMonitor, HealthThresholds
+from onboard.core.messages import Health, RgbdFrame, TrackResult
 from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.fused import GATED, FusedTracker
@@ -190,3 +191,15 @@ def test_sigma1_coverage_counts_axes_within_one_sigma() -> None:
     var = np.full((4, 3), 0.2**2)
     assert sigma1_coverage(p_est, var, p_true) == 11 / 12
     assert sigma1_coverage(p_est[:0], var[:0], p_true[:0]) is None
+
+
+def test_health_says_which_trackers_the_pose_used_and_why_one_is_left_out() -> None:
+    _, results = run(steady, lambda i: None if i >= 5 else steady(i), 10)
+    th = HealthThresholds(frame_timeout_s=0.5, degraded_gap_s=0.2, degraded_quality=5,
+                          start_grace_s=5.0, recover_s=0.0)
+    monitor = HealthMonitor(th, 0.0)
+    both = monitor.on_frame(0.1, results[2], None)
+    assert both.state is Health.TRACKING and both.reason.endswith("; nislam+fastorb")
+    one = monitor.on_frame(0.2, results[7], None)
+    assert one.state is Health.TRACKING
+    assert one.reason.endswith("; nislam only; fastorb: lost: too few inliers")
