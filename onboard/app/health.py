@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from onboard.core.messages import Health, HealthReport, TrackResult
+from onboard.fusion.fused import fusion_text
 
 QUALITY_HYSTERESIS = 5  # as the MAVLink feed's DEGRADED <-> ACTIVE
 
@@ -113,9 +114,10 @@ class HealthMonitor:
             problems.append(f"fallback tracker {self._fallback} (no attitude)")
         if self._gap_s > th.degraded_gap_s:
             problems.append(f"frame gap {self._gap_s:.2f} s")
+        fused = f"; {fusion_text(r)}" if r.contributors or r.left_out else ""
         if problems:
-            return Health.DEGRADED, ", ".join(problems)
-        return Health.TRACKING, f"quality {r.quality}"
+            return Health.DEGRADED, ", ".join(problems) + fused
+        return Health.TRACKING, f"quality {r.quality}{fused}"
 
     def _set(self, state: Health, reason: str) -> HealthReport:
         changed = state is not self.report.state or not self._announced

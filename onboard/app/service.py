@@ -363,6 +363,8 @@ class Service:
             "periods": list(s.periods),
             **s.frame_ms.stats(),
         }
+        if tr is not None and hasattr(tr.primary, "stats"):  # the fused tracker
+            metrics["fusion"] = tr.primary.stats()
         if self.sources.source_stats is not None:
             metrics["source_stats"] = self.sources.source_stats()
         self.timing.finish()
