@@ -282,7 +282,7 @@ class PacedCamera:
         from onboard.core.camera import CameraModel
 
         self.hz, self.n = hz, int(seconds * hz)
-        self.t0 = time.monotonic()
+        self.t0 = float("inf")  # the flight starts at the loop's first take()
         self.k = 0
         self.stalled_until = 0.0
         self.model = CameraModel(100.0, 100.0, 32.0, 24.0, 64, 48, 1000.0)
@@ -293,6 +293,8 @@ class PacedCamera:
     def take(self, after_seq: int = 0, timeout_s: float = 0.0):
         from onboard.core.messages import RgbdFrame
 
+        if self.t0 == float("inf"):
+            self.t0 = time.monotonic()
         due = self.t0 + (self.k + 1) / self.hz
         now = time.monotonic()
         if now < due or now < self.stalled_until or self.k >= self.n:
@@ -351,7 +353,7 @@ def _service(fault: str, lines: Lines, tmp: Path) -> Row:
     from onboard.app.sources import Sources
     from onboard.core.trajectory import parse_tum_lines
 
-    seconds = 4.0
+    seconds = 5.0
     cam = PacedCamera(seconds)
     tracker = ScriptedTracker()
     cfg = load_config(None, {"service.stats_period_s": 3600.0, "service.recover_s": 0.5,
@@ -386,11 +388,24 @@ def _service(fault: str, lines: Lines, tmp: Path) -> Row:
             tracker.jump_at_s = 100.0 + (t_inject + 0.3 - cam.t0)
             tracker.jump = 0.49
             t_warn = lines.wait(_has("health:", "step"), t_inject)
-            detector = "pose gate (motion model, 2 agreeing poses)"
+            detector = "pose gate, at the first frame after the 0.33 s gap"
         elif fault == "frames late (CPU starved)":
             cam.stalled_until = t_inject + 0.5
             t_warn = lines.wait(_has("health: degraded", "frame gap"), t_inject)
             detector = "degraded_gap_s 0.2 s (at the next frame)"
+        elif fault == "wall-clock jump":
+            real_time = time.time
+            time.time = lambda: real_time() + 3600.0  # NTP steps the clock an hour
+            try:
+                lost_before = sum(svc.stats.lost_reasons.values())
+                changes = svc.stats.health_changes
+                time.sleep(1.0)
+                passed_wall = sum(svc.stats.lost_reasons.values()) - lost_before
+                unchanged = svc.stats.health_changes == changes
+            finally:
+                time.time = real_time
+            t_warn = float("nan")  # nothing to warn about: nothing reads the wall clock
+            detector = "none needed: every stamp is CLOCK_MONOTONIC"
         else:  # disk full while recording
             disk["full"] = True
             t_warn = lines.wait(_has("trajectory.tum", "No space left"), t_inject)
@@ -398,9 +413,10 @@ def _service(fault: str, lines: Lines, tmp: Path) -> Row:
         t_clear = time.monotonic() if fault != "pose jump after a gap" else t_warn
         disk["full"] = False
         deadline = time.monotonic() + WAIT_S
-        while svc.health.report.state.value != "tracking" and time.monotonic() < deadline:
+        while svc.health.report.state.value != "tracking" and time.monotonic() < deadline \
+                and th.is_alive():
             time.sleep(0.01)
-        t_rec = time.monotonic()
+        t_rec = time.monotonic() if th.is_alive() else float("inf")
         th.join(WAIT_S)
     finally:
         run_files._open_file = real_open
@@ -421,6 +437,10 @@ def _service(fault: str, lines: Lines, tmp: Path) -> Row:
             f"{svc.stats.tracked - written} poses" + ("" if bad == 0 else ", UNREADABLE")
         note = ("trajectory.tum cut back to its last whole line, readable; rewritten whole "
                 "at the end once the disk had room")
+    elif fault == "wall-clock jump":
+        passed = passed_wall
+        note = ("+1 h: no frame untrusted, health " +
+                ("unchanged" if unchanged else "CHANGED"))
     else:
         note = f"{svc.stats.frames} frames, health recovered after recover_s 0.5 s"
     return Row(fault, detector, t_warn - t_inject, max(t_rec - t_clear, 0.0), passed, lost, note)
@@ -443,6 +463,7 @@ FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
     "pose jump after a gap": lambda ln, tmp: _service("pose jump after a gap", ln, tmp),
     "frames late (CPU starved)": lambda ln, tmp: _service("frames late (CPU starved)", ln, tmp),
     "disk full while recording": lambda ln, tmp: _service("disk full while recording", ln, tmp),
+    "wall-clock jump": lambda ln, tmp: _service("wall-clock jump", ln, tmp),
 }
 
 
@@ -459,6 +480,7 @@ def table(rows: list[Row]) -> str:
            "| passed on while failed | recorded data lost | note |",
            "|---|---|---|---|---|---|---|"]
     for r in rows:
-        out.append(f"| {r.fault} | {r.detector} | {r.warn_s:.2f} | {r.recover_s:.2f} | "
+        warn = "none" if r.warn_s != r.warn_s else f"{r.warn_s:.2f}"  # NaN: nothing to tell
+        out.append(f"| {r.fault} | {r.detector} | {warn} | {r.recover_s:.2f} | "
                    f"{r.passed_on} | {r.lost} | {r.note} |")
     return "\n".join(out)

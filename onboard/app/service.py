@@ -53,7 +53,7 @@ from onboard.app.replay import (
     write_text_atomic,
     write_trajectories,
 )
-from onboard.app.delivery import delivery_lines
+from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.run_files import FileWrites, LiveTrajectory
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
@@ -113,6 +113,8 @@ class Service:
         # kill then loses the last second, not the run: onboard.app.run_files)
         self.live = LiveTrajectory(out_dir / TRAJECTORY_FILE) if keep and out_dir else None
         self.writes = FileWrites()
+        self.delivery = DeliveryWatch()  # "nobody may be receiving", told once
+        self._outputs: Output | None = None
         self.tracker: SwitchingTracker | None = None
         self.health = HealthMonitor(HealthThresholds(
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
@@ -128,6 +130,7 @@ class Service:
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)
+        self._outputs = outputs
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop; start the
         # sensors, then compile the tracker's kernels (or load them from
@@ -285,6 +288,8 @@ class Service:
             "attitude_lead_ms_min": s.period_att_lead_ms,
         }
         s.periods.append(period)
+        if self._outputs is not None:
+            self.delivery.check(self._outputs, now)
         line = stats_line(period, self.tracker)
         if self.health.report.devices:  # each driver's state (drivers/device_state.py)
             line += "  " + ", ".join(self.health.report.devices)

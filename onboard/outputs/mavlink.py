@@ -214,6 +214,7 @@ class MavlinkOutput:
         out["state"] = self.feed.state.name
         out["system_status"] = self._system_status.name
         out["reset_counter"] = self.feed.reset_counter
+        out["shared_link"] = self._shared is not None  # `received` then counts TIMESYNC only
         return out
 
     def __enter__(self) -> MavlinkOutput:
