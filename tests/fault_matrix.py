@@ -446,6 +446,26 @@ def _service(fault: str, lines: Lines, tmp: Path) -> Row:
     return Row(fault, detector, t_warn - t_inject, max(t_rec - t_clear, 0.0), passed, lost, note)
 
 
+def _config(lines: Lines, tmp: Path) -> Row:
+    """A corrupt configuration: the service reads it once, at start (there
+    is no reload), so the fault is a bad file at a (re)start."""
+    from onboard import NislamError
+    from onboard.app.config import load_config
+
+    bad = tmp / "corrupt.toml"
+    bad.write_text('[service]\npoll_s = 0.05\n[mavlink\nconnect = "udpout:127.0.0.1:1"\n')
+    t0 = time.monotonic()
+    try:
+        load_config(bad)
+        raise AssertionError("a corrupt config was accepted")
+    except NislamError as e:
+        t_warn = time.monotonic()
+        one_line = "\n" not in str(e).strip()
+    return Row("corrupt config (at a restart)", "TOML parse and validation at start",
+               t_warn - t0, 0.0, 0 if one_line else 1, "none",
+               "one line, exit 1; no reload: a running service keeps the config it read")
+
+
 # --------------------------------------------------------------------------- the table
 
 FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
@@ -464,6 +484,7 @@ FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
     "frames late (CPU starved)": lambda ln, tmp: _service("frames late (CPU starved)", ln, tmp),
     "disk full while recording": lambda ln, tmp: _service("disk full while recording", ln, tmp),
     "wall-clock jump": lambda ln, tmp: _service("wall-clock jump", ln, tmp),
+    "corrupt config": _config,
 }
 
 
