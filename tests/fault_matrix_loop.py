@@ -128,8 +128,8 @@ def service_fault(fault: str, lines: Lines, tmp: Path) -> Row:
             cam.stalled_until = t_inject + 0.33
             tracker.jump_at_s = 100.0 + (t_inject + 0.3 - cam.t0)
             tracker.jump = 0.49
-            t_warn = lines.wait(_has("health:", "step"), t_inject)
-            detector = "pose gate, at the first frame after the 0.33 s gap"
+            t_warn = lines.wait(_has("pose jump the motion model cannot explain"), t_inject)
+            detector = "pose gate: the 0.33 s gap, then 2 poses withheld and checked"
         elif fault == "frames late (CPU starved)":
             cam.stalled_until = t_inject + 0.5
             t_warn = lines.wait(_has("health: degraded", "frame gap"), t_inject)
@@ -170,7 +170,7 @@ def service_fault(fault: str, lines: Lines, tmp: Path) -> Row:
         # The jumped poses written as trusted before the gate's verdict: none
         # may be (after it they carry the reset).
         passed = int(off.sum()) if gate.jumps != 1 else 0
-        note = (f"{gate.rejected} poses untrusted, then reset_counter +{gate.resets}; "
+        note = (f"{gate.rejected} poses withheld, then reset_counter +{gate.resets}; "
                 f"{int(off.sum())} later poses written in the new segment")
     elif fault == "disk full while recording":
         written = len(traj.t_s)

@@ -202,10 +202,15 @@ class Service:
         self._wait_for_attitude(frame.t_s)
         t0 = time.perf_counter()
         result = self.gate.check(tracker.track(frame, self.sources.attitude))
-        outputs.publish(result)
+        withheld = self.gate.withheld  # a suspect step being checked: no pose, no "lost"
+        if withheld:
+            for kf in result.finished_keyframes:  # the map still gets its key frames
+                outputs.publish_keyframe(kf)
+        else:
+            outputs.publish(result)
         ms = (time.perf_counter() - t0) * 1e3
         now = time.monotonic()
-        report = self.health.on_frame(
+        report = self.health.on_idle(now) if withheld else self.health.on_frame(
             now, result, tracker.fallback.name if tracker.fallback is not None else None)
         self._report(outputs, report)
         self._log_result(result, ms)
