@@ -182,6 +182,7 @@ class MavlinkOutput:
         out["state"] = self.feed.state.name
         out["system_status"] = self._system_status.name
         out["reset_counter"] = self.feed.reset_counter
+        out["shared_link"] = self._shared is not None  # `received` then counts TIMESYNC only
         return out
 
     def timesync_estimate(self) -> dict[str, Any] | None:
