@@ -79,6 +79,7 @@ def bench(
     results: list[TrackResult] = []
     # by kind: a frame that starts a key or re-uses a kept one does more work
     kind_ms: dict[str, list[float]] = {"keyframe": [], "reused": [], "plain": []}
+    parts_ms: dict[str, list[float]] = {}  # the fused tracker's parts (last_part_ms)
     for _ in range(repeat):
         tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
         for frame in frames:
@@ -91,6 +92,8 @@ def bench(
             kind = ("keyframe" if result.new_keyframe
                     else "reused" if result.keyframe_reused else "plain")
             kind_ms[kind].append(dt_ms)
+            for part, ms in getattr(tracker, "last_part_ms", {}).items():
+                parts_ms.setdefault(part, []).append(ms)
     by_kind: dict[str, Any] = {}
     for kind, ms in kind_ms.items():
         by_kind[f"{kind}_frames"] = len(ms) // repeat
@@ -105,6 +108,7 @@ def bench(
         **frame_time_stats(frame_ms),
         **by_kind,
         "stages_ms": {k: stage_stats(v) for k, v in stages.items()},
+        "parts_ms_median": {part: float(np.median(ms)) for part, ms in parts_ms.items()},
     }
 
 

@@ -100,6 +100,7 @@ class RunResult:
                          f"frames (SE(3)-aligned); RPE {_rpe(m)}")
         elif m.get("evaluation_note"):
             lines.append(f"ATE         not computed: {m['evaluation_note']}")
+        lines += m.get("output_notes", [])  # what each output delivered; files not written
         if self.out_dir is not None:
             lines.append(f"output      {self.out_dir}")
         return lines

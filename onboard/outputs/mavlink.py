@@ -414,6 +414,8 @@ class MavlinkOutput:
 
     def _on_message(self, msg: Any, t_rx_ns: int) -> None:
         kind = msg.get_type()
+        with self._lock:
+            self._stats.received += 1
         if kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
             with self._lock:
                 self._stats.signature_rejects += 1

@@ -27,6 +27,7 @@ class MavlinkStats:
     timesync_answers: int = 0  # answers to them
     untrusted_sent: int = 0  # poses sent for a result the tracker did not trust (must stay 0)
     sent_by_type: dict[str, int] = field(default_factory=dict)
+    received: int = 0  # messages from the peer (0 over UDP: nobody may be listening)
 
 
 class SharedLink(Protocol):

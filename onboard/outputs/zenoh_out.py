@@ -23,7 +23,8 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         map_digest: mapcodec.map_digest of the ids and
                         CRC-32s held), keyframes_published (distinct ids),
                         bytes_put by kind, dropped_poses, dropped_keyframes,
-                        errors, uptime_s, boot (random per process: a
+                        errors, uptime_s, trackers_used and trackers_left_out
+                        (the fused tracker: names; name -> why), boot (random per process: a
                         restarted vehicle keeps its id, its boot changes).
                         A last status goes out at close.
     alive               a liveliness token while the session is up.
@@ -400,6 +401,7 @@ class ZenohOutput:
             "uptime_s": now - self._start,
             "state": state,
             "health_reason": None if health is None else health.reason,
+            "devices": [] if health is None else list(health.devices),  # each driver's state
             "quality": 0 if last is None else tracking_quality(last),
             "lost_reason": None if last is None else last.lost_reason,
             "frame_hz": p["frames"] / span,
@@ -407,6 +409,9 @@ class ZenohOutput:
             "psr": None if last is None else _num(last.psr),
             "psr_mean": p["psr_sum"] / p["psr_n"] if p["psr_n"] else None,
             "resets": 0 if last is None else int(last.reset_counter),
+            # the fused tracker: which trackers the pose used, why others were left out
+            "trackers_used": None if last is None else list(last.contributors),
+            "trackers_left_out": None if last is None else dict(last.left_out),
             **self.stats(),
             **(self.status_extra() if self.status_extra is not None else {}),
         }
