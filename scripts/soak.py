@@ -193,7 +193,12 @@ def main() -> int:
     lat = run.get("latency_ms") or {}
     print(f"latency capture -> written: p50 {fmt(lat.get('p50'))} / p95 {fmt(lat.get('p95'))} "
           f"/ p99 {fmt(lat.get('p99'))} ms; resets {run.get('resets')}; "
-          f"untrusted sent {run.get('untrusted_sent')}; delay advice {run.get('delay_advice')}")
+          f"untrusted sent {run.get('untrusted_sent')}")
+    adv = run.get("delay_advice") or {}
+    ts = run.get("timesync") or {}
+    print(f"delay advice: VISO_DELAY_MS {adv.get('VISO_DELAY_MS')}, EKF2_EV_DELAY "
+          f"{adv.get('EKF2_EV_DELAY')} (from capture to {adv.get('basis')}); TIMESYNC round "
+          f"trip {ts.get('rtt_min_ms')} ms")
     print("minute   Hz  resets  loop p50/p95/p99 ms (worst period)  latency p50/p95/p99 ms  "
           "dropped")
     for row in table:

@@ -91,6 +91,7 @@ class LoopTiming:
         self.minutes: list[dict[str, Any]] = []
         self.one_way_s: Callable[[], float | None] = lambda: None  # set by attach_timing()
         self.timesync: Callable[[], dict[str, Any] | None] = lambda: None
+        self.autopilot_timesyncs: Callable[[], bool] = lambda: False  # we answered its requests
         self.process_start_s = process_start_monotonic()
         self.service_start_s = time.monotonic()
         self.first_pose_at: float | None = None
@@ -229,7 +230,7 @@ class LoopTiming:
         """What the zenoh status carries (its own thread, once a second)."""
         ts = self.timesync()
         return {"latency_ms": self.recent(), "timesync": ts,
-                "delay_advice": delay_advice(self, ts)}
+                "delay_advice": delay_advice(self, ts, self.autopilot_timesyncs())}
 
     def run_fields(self, frames_offered: int, resets: int,
                    output_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -352,6 +353,7 @@ def attach_timing(outputs: Any, timing: LoopTiming, service_start_s: float) -> N
             out.on_written = timing.on_written
             timing.one_way_s = out.one_way_s
             timing.timesync = out.timesync_estimate
+            timing.autopilot_timesyncs = lambda o=out: o.stats()["timesync_replies"] > 0
         if hasattr(out, "on_stage"):
             out.on_stage = timing.on_stage
         if hasattr(out, "status_extra"):

@@ -402,8 +402,7 @@ class MavlinkOutput:
             self._on_message(msg, self._clock_ns())
 
     def _await_answer(self, ts1: int) -> None:
-        """Read our link as data comes until `ts1` is answered (ANSWER_WAIT_S at
-        most): polled every RX_POLL_S, it could wait 2 ms, half of it offset error."""
+        """Read our link at once until `ts1` is answered (polling adds offset error)."""
         deadline = time.monotonic() + ANSWER_WAIT_S
         while self._conn is not None and self.timesync.pending(ts1):
             left = deadline - time.monotonic()
