@@ -26,6 +26,7 @@ from onboard.core.camera import CameraModel, undistort_maps
 from onboard.core.messages import RgbdFrame
 from onboard.core.trajectory import Trajectory, parse_tum_lines
 from sim_replay.images import decode_image
+from sim_replay.outdir import check_complete
 from sim_replay.tum_files import (
     DEFAULT_GT_MAX_GAP_S,
     DEFAULT_MAX_ASSOC_DT_S,
@@ -273,6 +274,7 @@ def open_sequence(
     seq_dir = Path(seq_dir)
     if not seq_dir.is_dir():
         raise NislamError(f"sequence folder {seq_dir} does not exist")
+    check_complete(seq_dir)
     for name in ("rgb.txt", "depth.txt"):
         if not (seq_dir / name).is_file():
             raise NislamError(f"{seq_dir} has no {name}: not a TUM-layout RGB-D sequence")

@@ -32,6 +32,7 @@ from onboard.core.evaluation import (
 )
 from onboard.core.messages import AttitudeSource, KeyframeCloud, Tracker
 from onboard.core.trajectory import Trajectory, write_tum
+from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.registry import make_tracker
 from onboard.outputs.plot import plot_trajectory
 from onboard.outputs.ply import write_ply
@@ -60,6 +61,7 @@ class TrackLog:
     p_W_m: list[np.ndarray] = field(default_factory=list)
     q_W_C_xyzw: list[np.ndarray] = field(default_factory=list)
     reference_keyframe_id: list[int] = field(default_factory=list)  # per pose, -1 = unknown
+    var_p_m2: list[np.ndarray] = field(default_factory=list)  # reported position variances
     frame_ms: list[float] = field(default_factory=list)
     lost_reasons: collections.Counter = field(default_factory=collections.Counter)
     keyframes: int = 0
@@ -169,6 +171,9 @@ def replay(
     metrics = build_metrics(
         seq, cfg, track_log, ev, attitude_label, map_points, plot_written=plot_note is None
     )
+    metrics["sigma1_coverage"] = _coverage(track_log, seq, cfg.replay.gt_max_gap_s)
+    if hasattr(tracker, "stats"):  # the fused tracker: who contributed, who was left out
+        metrics["fusion"] = tracker.stats()
     write_text_atomic(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     written = {name: p for name, p in paths.items() if p.exists()}
     return ReplayResult(metrics, out_dir, written, plot_note)
@@ -197,6 +202,7 @@ def track_sequence(
                 out.p_W_m.append(result.p_W_m)
                 out.q_W_C_xyzw.append(result.q_W_C_xyzw)
                 out.reference_keyframe_id.append(result.reference_keyframe_id)
+                out.var_p_m2.append(np.asarray(result.pose_var[:3], dtype=np.float64))
             else:
                 out.lost_reasons[result.lost_reason or "unknown"] += 1
             out.keyframes += int(result.new_keyframe)
@@ -235,6 +241,16 @@ def evaluate_track(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> E
     ref_ids = ref_ids[valid] if len(ref_ids) == len(valid) else None
     metrics = evaluate(est, gt, rpe_delta_s=RPE_DELTA_S, reference_keyframe_id=ref_ids)
     return Evaluation(est, gt, metrics, missing, None)
+
+
+def _coverage(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> float | None:
+    """Share of the position error the reported 1-sigma covers (onboard.fusion.coverage)."""
+    if seq.groundtruth is None or not track_log.t_s:
+        return None
+    est = track_log.trajectory()
+    gt, valid = ground_truth_at(est.t_s, seq.groundtruth, gt_max_gap_s)
+    var = np.asarray(track_log.var_p_m2, dtype=np.float64).reshape(-1, 3)[valid]
+    return sigma1_coverage(est.p_xyz_m[valid], var, gt.p_xyz_m)
 
 
 def build_metrics(

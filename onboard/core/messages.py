@@ -110,6 +110,10 @@ class TrackResult:
     # The key this frame's pose was measured against (-1: not known, or no
     # single key): differs from `keyframe_id` on the frame that makes a new key.
     reference_keyframe_id: int = -1
+    # The fused tracker (onboard.fusion.fused): the trackers whose motion this
+    # frame's pose used, and (tracker, why) for each one left out.
+    contributors: tuple[str, ...] = ()
+    left_out: tuple[tuple[str, str], ...] = ()
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:
@@ -142,3 +146,4 @@ class HealthReport:
     state: Health
     reason: str  # one line: why this state (shown in STATUSTEXT and zenoh status)
     changed: bool = False  # differs from the previous report's state
+    devices: tuple[str, ...] = ()  # each driver's state ("OAK-D streaming", "myAHRS+ no device (...)")

@@ -4,7 +4,7 @@
 Every tracker is a pure core (arrays in, a result out) behind the same
 `onboard.core.messages.Tracker` protocol, so replay, bench and the onboard loop
 never ask which one they hold. The factory reads each tracker's parameters from
-its own section of the configuration (`[nislam]`, `[fastorb]`); it takes any
+its own section of the configuration (`[nislam]`, `[fastorb]`, `[fusion]`); it takes any
 object carrying those sections, so this module needs nothing of the
 application's configuration (which reads `TRACKER_NAMES` from here).
 """
@@ -19,6 +19,8 @@ from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import Tracker
 from onboard.fastorb.params import FastOrbParams
 from onboard.fastorb.tracker import FastOrbTracker
+from onboard.fusion.fused import FusedTracker
+from onboard.fusion.params import FusionParams
 from onboard.nislam.params import NislamParams
 from onboard.nislam.tracker import NislamTracker
 
@@ -41,9 +43,16 @@ def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker
     return FastOrbTracker(intrinsics, cfg.fastorb)
 
 
+def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+    # NI-SLAM first: its key-frame clouds make the map (onboard.fusion.fused).
+    params = getattr(cfg, "fusion", None) or FusionParams()
+    return FusedTracker([_make_nislam(intrinsics, cfg), _make_fastorb(intrinsics, cfg)], params)
+
+
 _REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
     "nislam": _make_nislam,
     "fastorb": _make_fastorb,
+    "fused": _make_fused,
 }
 TRACKER_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 
