@@ -43,7 +43,7 @@ class NislamParams:
     # sampling) and carried to the sub-cell peak; floor 0 = the paper's mean.
     depth_sigma_rel: float = 0.0015  # 1/m: stereo / structured-light class (1.5 mm at 1 m)
     depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
-    depth_time_compensation: bool = True  # gray taken through the rotation between colour and depth stamps
+    depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
     # t_z on the key axis from a plane fit of the depth differences: off, its
     # tilt is noise levered onto t_z (docs/nislam-error-budget.md)
     depth_tilt_fit: bool = False
