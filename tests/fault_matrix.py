@@ -281,6 +281,15 @@ def _loop_fault(name: str) -> Callable[[Lines, Path], Row]:
     return run
 
 
+def _links_fault(name: str) -> Callable[[Lines, Path], Row]:
+    def run(lines: Lines, tmp: Path) -> Row:
+        import fault_matrix_links as links
+
+        return links.zenoh_router(lines, tmp)
+
+    return run
+
+
 # --------------------------------------------------------------------------- the table
 
 FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
@@ -295,6 +304,7 @@ FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
     "AHRS silence": lambda ln, tmp: _myahrs("silence", ln, tmp),
     "MAVLink peer gone": lambda ln, tmp: _mavlink("peer gone", ln),
     "MAVLink garbage": lambda ln, tmp: _mavlink("garbage", ln),
+    "zenoh router gone": _links_fault("zenoh router gone"),
     "pose jump after a gap": _loop_fault("pose jump after a gap"),
     "frames late (CPU starved)": _loop_fault("frames late (CPU starved)"),
     "disk full while recording": _loop_fault("disk full while recording"),
