@@ -1,8 +1,11 @@
-"""Fault-matrix rows (tests/fault_matrix.py) for a link:
+"""Fault-matrix rows (tests/fault_matrix.py) for a link and for stamps:
 
 - the zenoh router gone and back: a real `nislam router` process killed and
   restarted, the real ZenohOutput as a client, a ground subscriber through the
-  router.
+  router;
+- the AHRS's stamps jumping ahead or back by 3 s while the camera's do not:
+  the real myAHRS+ driver on the simulated device, its samples shifted on
+  their way into the real AttitudeBuffer (live: checked against the clock).
 """
 
 from __future__ import annotations
@@ -14,9 +17,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fault_matrix import WAIT_S, Lines, Row, _has
+from fault_matrix import DEVICE, WAIT_S, AhrsDevice, Lines, Row, _has
 from subproc import REPO, JsonLinesProcess, free_port
 
+from onboard.core.attitude import AttitudeBuffer, AttitudeSample
 from onboard.core.messages import TrackResult, TrackState
 
 NISLAM = REPO / ".venv" / "bin" / "nislam"
@@ -104,3 +108,46 @@ def zenoh_router(lines: Lines, tmp: Path) -> Row:
         out.close(5)
         router.stop(signal.SIGKILL)
 
+
+def ahrs_time_jump(direction: str, lines: Lines, tmp: Path) -> Row:
+    from drivers.myahrs import MyAhrsDriver
+
+    assert DEVICE.exists()
+    link = tmp / f"myahrs_jump_{direction}"
+    dev = AhrsDevice(link)
+    dev.expect("plugged")
+    buf = AttitudeBuffer(now_ns=time.monotonic_ns, label="myAHRS+")
+    shift = {"ns": 0}
+    jump_ns = int((3.0 if direction == "ahead" else -3.0) * 1e9)
+
+    def sink(sample: AttitudeSample) -> None:  # the AHRS's stamps, jumped or not
+        buf.push(AttitudeSample(sample.t_ns + shift["ns"], sample.q_W_B_xyzw))
+
+    drv = MyAhrsDriver(str(link), sink, silence_s=0.5, reopen_after_s=3.0,
+                       reconnect_min_s=0.05, reconnect_max_s=0.2)
+    drv.start()
+    try:
+        assert buf.wait_for_samples(20, WAIT_S)
+        t_inject = time.monotonic()
+        shift["ns"] = jump_ns
+        t_warn = lines.wait(_has("myAHRS+ stamps", ": bad data"), t_inject)
+        stored = buf.stats.pushed
+        time.sleep(1.0)  # the jump lasts a while
+        stored = buf.stats.pushed - stored
+        t_clear = time.monotonic()
+        shift["ns"] = 0
+        t_rec = lines.wait(_has("myAHRS+ stamps", "recovered"), t_warn)
+        assert buf.wait_for_samples(buf.stats.pushed + 5, WAIT_S)
+        # frames captured while the stamps were wrong (30 Hz): none may get an attitude
+        frames = np.arange(t_warn, t_clear, 1 / 30)
+        attituded = sum(buf.rotation_at(t) is not None for t in frames)
+        told = lines.count(_has("myAHRS+ stamps", ": bad data"), t_inject)
+        assert told == 1, f"{told} warning lines for one jump"
+        return Row(f"AHRS time jump {direction} (3 s)",
+                   "each sample's stamp against the clock, jump_s 2 s", t_warn - t_inject,
+                   max(t_rec - t_clear, 0.0), stored + attituded, "none",
+                   f"samples stored + frames given an attitude while wrong "
+                   f"({len(frames)} frames, {buf.stats.rejected_time_jump} samples dropped)")
+    finally:
+        drv.stop(10)
+        dev.close()
