@@ -281,6 +281,17 @@ def _loop_fault(name: str) -> Callable[[Lines, Path], Row]:
     return run
 
 
+def _links_fault(name: str) -> Callable[[Lines, Path], Row]:
+    def run(lines: Lines, tmp: Path) -> Row:
+        import fault_matrix_links as links
+
+        if name.startswith("AHRS time jump"):
+            return links.ahrs_time_jump(name.split()[-1], lines, tmp)
+        return links.zenoh_router(lines, tmp)
+
+    return run
+
+
 # --------------------------------------------------------------------------- the table
 
 FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
@@ -293,8 +304,11 @@ FAULTS: dict[str, Callable[[Lines, Path], Row]] = {
     "AHRS NaN values": lambda ln, tmp: _myahrs("NaN values", ln, tmp),
     "AHRS frozen values": lambda ln, tmp: _myahrs("frozen values", ln, tmp),
     "AHRS silence": lambda ln, tmp: _myahrs("silence", ln, tmp),
+    "AHRS time jump ahead": _links_fault("AHRS time jump ahead"),
+    "AHRS time jump back": _links_fault("AHRS time jump back"),
     "MAVLink peer gone": lambda ln, tmp: _mavlink("peer gone", ln),
     "MAVLink garbage": lambda ln, tmp: _mavlink("garbage", ln),
+    "zenoh router gone": _links_fault("zenoh router gone"),
     "pose jump after a gap": _loop_fault("pose jump after a gap"),
     "frames late (CPU starved)": _loop_fault("frames late (CPU starved)"),
     "disk full while recording": _loop_fault("disk full while recording"),

@@ -138,6 +138,8 @@ class Service:
                                host_time_s=self.sources.host_time_s)
         attach_timing(outputs, self.timing, t_start)
         self._outputs = outputs
+        drivers = self.sources.devices  # + the outputs' links (the zenoh router)
+        self.health.devices = lambda: [*(drivers() if drivers else []), *outputs.device_states()]
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop; start the
         # sensors, then compile the tracker's kernels (or load them from

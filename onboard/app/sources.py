@@ -131,7 +131,9 @@ def follow_sources(cfg: Config, name: str) -> Sources:
     from sim_replay.follow_state import STATE_TYPES
 
     sf, m = cfg.sim_follow, cfg.mavlink
-    buffer = make_attitude_buffer(cfg)
+    # The simulated AHRS sends samples missed in a stall late, by design
+    # (sim_replay.follow CATCH_UP_S): no time-jump check on its stamps.
+    buffer = make_attitude_buffer(cfg, check_stamps=False)
     fol = open_follow(
         name, R_B_C=mount_rotation(m.mount, m.mount_q_B_C_xyzw), q_B_C_xyzw=camera_mount_q(cfg),
         sink=buffer.push, width=sf.width, height=sf.height, camera_hz=sf.camera_hz,

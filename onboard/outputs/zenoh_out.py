@@ -84,6 +84,7 @@ from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
 from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
 from onboard.outputs.wake import Wake
+from onboard.outputs.zenoh_link import ZenohLink
 from onboard.outputs.zenoh_session import (
     Worker,
     key_prefix,
@@ -249,10 +250,14 @@ class ZenohOutput:
         self._period = {"frames": 0, "tracked": 0, "psr_sum": 0.0, "psr_n": 0}
         self._period_start = clock()
         self._last: TrackResult | None = None
+        # The link to the router or peers of `connect`: one warning when it
+        # goes, one line when it is back (onboard/outputs/zenoh_link.py).
+        self.link = ZenohLink(cfg, clock)
+        self.device_state = self.link.state if self.link.watched else None
         self._health: HealthReport | None = None
         self._next_status = clock()
         self._pose_worker: Worker[TrackResult] = Worker(
-            "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._status_tick)
+            "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._tick)
         self._map_worker: Worker[KeyframeCloud] = Worker("zenoh-map", self._put_keyframe, 256)
         self._closed = False
         # Set by the service (onboard.app.latency.attach_timing): the loop's
@@ -367,6 +372,10 @@ class ZenohOutput:
         self._bytes["pose"] += len(data)
         if self.on_stage is not None:
             self.on_stage("zenoh_pose_encode_put", (time.perf_counter() - t0) * 1e3)
+
+    def _tick(self) -> float:
+        ent = self._entities
+        return min(self.link.poll(None if ent is None else ent.session), self._status_tick())
 
     def _status_tick(self) -> float:
         now = self._clock()
