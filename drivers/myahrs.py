@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -398,11 +399,10 @@ def _pyserial_factory(port: str, baud: int, timeout_s: float):
 
 
 def _short(e: BaseException) -> str:
-    """pyserial repeats itself ("could not open port X: [Errno 2] No such
-    file or directory: 'X'"): keep the OS's part."""
-    text = str(e)
-    return text.split(": ", 1)[1] if text.startswith("could not open port") and ": " in text \
-        else text
+    """pyserial repeats itself ("[Errno 2] could not open port X: [Errno 2]
+    No such file or directory: 'X'"): the OS's words for the errno."""
+    errno_ = getattr(e, "errno", None)
+    return os.strerror(errno_) if isinstance(errno_, int) and errno_ > 0 else str(e)
 
 
 def _close_quietly(ser) -> None:

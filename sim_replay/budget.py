@@ -34,16 +34,11 @@ CAMERAS: dict[str, dict[str, Any]] = {
     "camera": {},  # the default sensor model: noise, holes and 3 mm texels at once
 }
 
-# The paper's Eq. 18 as the tracker had it: a plain mean of the depth
-# differences at the whole-cell shift, with the tilt fit.
-PAPER_DEPTH = {"depth_sigma_floor_m": 0.0, "depth_tilt_fit": True}
-
 # Sources: name -> (camera, attitude error fields, [nislam] overrides).
 SOURCES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
     "none (ideal camera, exact attitude)": ("ideal", {}, {}),
-    "t_z: plain mean + tilt fit (before)": ("ideal", {}, PAPER_DEPTH),
-    "t_z: tilt fit on": ("ideal", {}, {"depth_tilt_fit": True}),
-    "t_z: plain mean (no weights, whole-cell shift)": ("ideal", {}, {"depth_sigma_floor_m": 0.0}),
+    "t_z: tilt fit on (before)": ("ideal", {}, {"depth_tilt_fit": True}),
+    "t_z: inverse-variance weights, sub-cell": ("ideal", {}, {"depth_sigma_floor_m": 0.001}),
     "no time-offset calibration": ("ideal", {}, {"calibrate_time_offset": False}),
     "pixel noise 2 DN": ("pixel-noise", {}, {}),
     "depth noise 0.0015 z^2": ("depth-noise", {}, {}),
@@ -53,6 +48,8 @@ SOURCES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
     "attitude noise 1 deg": ("ideal", {"noise_deg": 1.0}, {}),
     "attitude offset 10 ms": ("ideal", {"offset_ms": 10.0}, {}),
     "camera model (all camera sources)": ("camera", {}, {}),
+    "camera model, tilt fit on (before)": ("camera", {}, {"depth_tilt_fit": True}),
+    "camera model, weights, sub-cell": ("camera", {}, {"depth_sigma_floor_m": 0.001}),
 }
 
 

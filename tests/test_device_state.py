@@ -79,3 +79,65 @@ def test_run_without_camera_and_ahrs_warns_for_each_within_2_s(tmp_path, caplog)
     assert lines and "OAK-D no device" in lines[-1] and "myAHRS+ no device" in lines[-1]
     assert "OAK-D no device" in svc.health.report.reason
     assert time.monotonic() - t0 < 10
+
+
+class _Undeclarable:
+    def undeclare(self) -> None:
+        pass
+
+
+class RecordingSession:
+    """The part of a zenoh.Session that ZenohOutput uses; puts recorded."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, bytes]] = []
+        self.cond = threading.Condition()
+
+    def put(self, key: str, payload, **kwargs) -> None:
+        with self.cond:
+            self.puts.append((key, payload))
+            self.cond.notify_all()
+
+    def declare_publisher(self, key: str, **kwargs):
+        session = self
+
+        class Publisher(_Undeclarable):
+            def put(self, payload) -> None:
+                session.put(key, payload)
+
+            def declare_matching_listener(self, callback) -> _Undeclarable:
+                return _Undeclarable()
+
+        return Publisher()
+
+    def declare_queryable(self, key: str, callback) -> _Undeclarable:
+        return _Undeclarable()
+
+    def liveliness(self):
+        return self
+
+    def declare_token(self, key: str) -> _Undeclarable:
+        return _Undeclarable()
+
+
+def test_the_zenoh_status_carries_each_driver_state():
+    import json
+
+    from onboard.core.messages import Health, HealthReport
+    from onboard.outputs.settings import ZenohConfig
+    from onboard.outputs.zenoh_out import ZenohOutput
+
+    session = RecordingSession()
+    out = ZenohOutput(ZenohConfig(vehicle="v9", status_period_s=0.05), session=session)
+    devices = ("OAK-D no device (cannot open: no OAK device available)", "myAHRS+ streaming")
+    try:
+        out.publish_health(HealthReport(Health.LOST, "no frames for 2.0 s", True, devices))
+
+        def carried() -> bool:
+            return any(k.endswith("/status") and json.loads(p).get("devices") == list(devices)
+                       for k, p in session.puts)
+
+        with session.cond:
+            assert session.cond.wait_for(carried, 30.0), session.puts[-3:]
+    finally:
+        out.close(10.0)

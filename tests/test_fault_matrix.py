@@ -10,7 +10,7 @@ from fault_matrix import FAULTS, run_matrix
 # What the issue asks of every fault: the warning within 1 s of the
 # detector's own threshold, recovery within 3 s of the fault clearing,
 # nothing untrusted passed on, nothing recorded lost.
-THRESHOLD_S = {"camera unplug": 0.0, "AHRS garbage": 0.5, "pose jump after a gap": 0.33}
+THRESHOLD_S = {"camera unplug": 0.0, "AHRS garbage": 0.5, "pose jump after a gap": 0.43}
 
 
 @pytest.mark.parametrize("name", sorted(THRESHOLD_S))

@@ -49,7 +49,7 @@ def test_a_jump_after_a_gap_is_never_sent_trusted_and_ends_in_a_reset():
     t += 0.33
     x += 0.033
     after = [gate.check(_result(t + k / 30, (x + 0.49 + 0.1 * k / 30, 0, 1))) for k in range(8)]
-    assert not after[0].trusted and after[0].p_W_m is None
+    assert not after[0].trusted and after[0].p_W_m is None and gate.stats.checks == 1
     assert "step 0.4" in after[0].lost_reason
     settle = GateSettings().settle_frames
     assert not any(r.trusted for r in after[:settle])
@@ -74,11 +74,17 @@ def test_real_manoeuvres_and_tracker_resets_pass_the_gate():
     # The tracker's own reset (its counter moves) is a new world: no jump.
     r = gate.check(_result(t[-1] + 1 / 30, (5.0, 5.0, 5.0), counter=1))
     assert r.trusted and r.reset_counter == 1
-    # After a gap longer than the model covers: checked, then a reset.
-    res = [gate.check(_result(t[-1] + 3.0 + k / 30, (5.5, 5.0, 5.0), counter=1))
-           for k in range(4)]
+    # After a gap longer than one pose can be judged over: the next poses are
+    # checked (withheld), then trusted as they are when the step is possible ...
+    t1 = t[-1] + 3.0
+    res = [gate.check(_result(t1 + k / 30, (5.5, 5.0, 5.0), counter=1)) for k in range(4)]
     assert [r.trusted for r in res] == [False, False, True, True]
-    assert res[-1].reset_counter == 2 and gate.stats.resets == 1 and gate.stats.jumps == 0
+    assert res[-1].reset_counter == 1 and gate.stats.resets == 0 and gate.stats.checks == 1
+    # ... and with a reset when it is not (50 m in 3 s).
+    t2 = t1 + 3.0
+    res = [gate.check(_result(t2 + k / 30, (55.5, 5.0, 5.0), counter=1)) for k in range(4)]
+    assert [r.trusted for r in res] == [False, False, True, True]
+    assert res[-1].reset_counter == 2 and gate.stats.resets == 1 and gate.stats.jumps == 1
     # Untrusted results pass through untouched.
-    r = gate.check(_result(t[-1] + 3.5, None, counter=1, trusted=False))
-    assert not r.trusted and r.reset_counter == 2
+    r = gate.check(_result(t2 + 0.5, None, counter=1, trusted=False))
+    assert not r.trusted and r.reset_counter == 2 and not gate.withheld

@@ -247,3 +247,40 @@ def test_sizes_rates_durations_and_urls_out_of_bounds_are_one_line(argv, expect,
 def test_config_sizes_rates_and_durations_have_upper_bounds(key, value):
     with pytest.raises(NislamError, match=key.replace(".", r"\.")):
         load_config(None, {key: value})
+
+
+def test_the_summary_says_what_each_output_delivered(caplog):
+    from onboard.app.delivery import DeliveryWatch, delivery_lines
+
+    stats = {"mavlink": {"poses_sent": 590, "not_sent": 3, "link_up": True, "link_opens": 1,
+                         "link_errors": 0, "received": 0, "heartbeats": 21,
+                         "sent_by_type": {"ODOMETRY": 590, "HEARTBEAT": 21}},
+             "zenoh": {"poses_published": 600, "keyframes_published": 12, "dropped_poses": 0,
+                       "dropped_keyframes": 0, "errors": 0, "connected": True}}
+    mav, zen = delivery_lines(stats)
+    assert "590 poses sent" in mav and "link up" in mav and "nobody may be receiving" in mav
+    assert "600 poses, 12 key frames published" in zen and "session open" in zen
+    stats["mavlink"]["received"] = 40
+    assert "40 messages back from the peer" in delivery_lines(stats)[0]
+
+    class MavlinkOutput:  # what the watch reads of onboard.outputs.mavlink.MavlinkOutput
+        class cfg:
+            connect = "udpout:127.0.0.1:14550"
+
+        def __init__(self) -> None:
+            self.s = {"poses_sent": 0, "heartbeats": 1, "received": 0}
+
+        def stats(self):
+            return dict(self.s)
+
+    class Group:
+        outputs = [MavlinkOutput()]
+
+    watch = DeliveryWatch(after_s=5.0)
+    with caplog.at_level(logging.WARNING):
+        for t in range(12):  # one stats period a second; nothing ever comes back
+            Group.outputs[0].s["poses_sent"] += 30
+            watch.check(Group, float(t))
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "udpout:127.0.0.1:14550" in lines[0]
+    assert "nothing came back in 5 s: nobody may be receiving" in lines[0]

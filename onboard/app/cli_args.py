@@ -13,8 +13,9 @@ from pathlib import Path
 
 import onboard
 from onboard import NislamError
+from sim_replay.flights import SCENARIOS
 
-SCENARIO_NAMES = ("hover", "circle", "figure8", "corridor", "yaw-spin", "aggressive")
+SCENARIO_NAMES = tuple(SCENARIOS)  # one list: the simulator's own
 
 
 def default_bench_sequence() -> Path:

@@ -54,7 +54,7 @@ from onboard.app.replay import (
     write_text_atomic,
     write_trajectories,
 )
-from onboard.app.delivery import delivery_lines
+from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.run_files import FileWrites, LiveTrajectory
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
@@ -115,6 +115,8 @@ class Service:
         # kill then loses the last second, not the run: onboard.app.run_files)
         self.live = LiveTrajectory(out_dir / TRAJECTORY_FILE) if keep and out_dir else None
         self.writes = FileWrites()
+        self.delivery = DeliveryWatch()  # "nobody may be receiving", told once
+        self._outputs: Output | None = None
         self.tracker: SwitchingTracker | None = None
         self.health = HealthMonitor(HealthThresholds(
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
@@ -135,6 +137,7 @@ class Service:
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)
         attach_timing(outputs, self.timing, t_start)
+        self._outputs = outputs
         stop_times: dict[str, float] = {}
         # Announce "starting" before anything can block the loop; start the
         # sensors, then compile the tracker's kernels (or load them from
@@ -216,16 +219,21 @@ class Service:
         t0 = time.perf_counter()
         result = self.gate.check(tracker.track(frame, self.sources.attitude))
         timing.lap()
-        outputs.publish(result)
+        withheld = self.gate.withheld  # a suspect step being checked: no pose, no "lost"
+        if withheld:
+            for kf in result.finished_keyframes:  # the map still gets its key frames
+                outputs.publish_keyframe(kf)
+        else:
+            outputs.publish(result)
         timing.lap()
         ms = (time.perf_counter() - t0) * 1e3
         now = time.monotonic()
-        report = self.health.on_frame(
+        report = self.health.on_idle(now) if withheld else self.health.on_frame(
             now, result, tracker.fallback.name if tracker.fallback is not None else None)
         self._report(outputs, report)
         self._log_result(result, ms)
         timing.lap()
-        timing.frame_end(result.trusted and result.p_W_m is not None,
+        timing.frame_end(result.trusted and result.p_W_m is not None and not withheld,
                          report.state is Health.TRACKING)
         if not self.ready:
             self.ready = True
@@ -307,6 +315,8 @@ class Service:
             "attitude_lead_ms_min": s.period_att_lead_ms,
         }
         s.periods.append(period)
+        if self._outputs is not None:
+            self.delivery.check(self._outputs, now)
         line = stats_line(period, self.tracker)
         if self.health.report.devices:  # each driver's state (drivers/device_state.py)
             line += "  " + ", ".join(self.health.report.devices)

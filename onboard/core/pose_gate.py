@@ -16,18 +16,19 @@ velocity after the gap can. The gate:
    (noise, the velocity's noise, and how far a vehicle accelerating at
    `trigger_accel_m_s2` strays, the velocity being the window's mean). A pose
    outside that, or after a gap over `max_gap_s`, starts a check;
-2. during the check poses go out untrusted (counted) until `settle_frames`
-   more agree with it; their velocity v1 is then known, and the step d
-   across the gap T must satisfy the two-sided bound
+2. during the check the poses are withheld (`withheld`; untrusted, counted:
+   the service sends no pose for them, and does not count them as lost)
+   until `settle_frames` more agree with it; their velocity v1 is then
+   known, and the step d across the gap T must satisfy the two-sided bound
 
        |d - (v0 + v1) / 2 * T| <= base_m + max_accel / 4 * T^2 + noise * T
 
    (a vehicle that starts at v0 and ends at v1 strays at most a T^2 / 4 from
    the trapezoid between them, bang-bang acceleration). Within it the poses
-   are trusted again as they are; beyond it (or after a gap over max_gap_s)
-   the tracker jumped: counted, and the poses from then on go out with
-   reset_counter one higher, so the autopilot's EKF takes the new position
-   as a reset, not as motion.
+   are trusted again as they are (a false trigger costs `settle_frames`
+   withheld poses, nothing else); beyond it the tracker jumped: counted, and
+   the poses from then on go out with reset_counter one higher, so the
+   autopilot's EKF takes the new position as a reset, not as motion.
 
 A tracker reset (its own reset_counter moves) restarts the gate.
 """
@@ -35,6 +36,7 @@ A tracker reset (its own reset_counter moves) restarts the gate.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -43,13 +45,15 @@ import numpy as np
 
 from onboard.core.messages import TrackResult
 
+log = logging.getLogger(__name__)
+
 
 @dataclass(frozen=True)
 class GateSettings:
     max_accel_m_s2: float = 4.0  # an indoor multirotor stays below ~0.4 g
     trigger_accel_m_s2: float = 2.0  # tighter: a false trigger costs settle_frames, not a reset
     pose_sigma_m: float = 0.01  # tracker position noise per frame (NI-SLAM ~1 cm)
-    max_gap_s: float = 1.0  # beyond this the motion model says nothing: reset
+    max_gap_s: float = 1.0  # beyond this one pose cannot be judged: check the next ones
     settle_frames: int = 2  # agreeing poses after a suspect one before the verdict
     velocity_window_s: float = 0.2
 
@@ -67,7 +71,7 @@ class GateStats:
     rejected: int = 0  # ... sent as untrusted by the gate (while checking)
     checks: int = 0  # suspect poses (a step beyond the trigger, or after a long gap)
     jumps: int = 0  # checks that found a step the motion model cannot explain
-    resets: int = 0  # reset_counter steps added (jumps and long gaps)
+    resets: int = 0  # reset_counter steps added (one per jump)
     last_reason: str | None = None
 
     def as_dict(self) -> dict[str, object]:
@@ -87,14 +91,15 @@ class PoseGate:
         self._history: deque[Pose] = deque()  # accepted poses, the last velocity window
         self._hold: list[Pose] | None = None  # poses since a suspect step
         self._hold_why = ""
-        self._hold_gap = False  # the check began after a gap over max_gap_s
         self._tracker_counter: int | None = None
+        self.withheld = False  # the last result was withheld while a step is checked
 
     def check(self, result: TrackResult) -> TrackResult:
         if self._tracker_counter is not None and result.reset_counter != self._tracker_counter:
             self._history.clear()  # the tracker's world restarted: nothing to compare with
             self._hold = None
         self._tracker_counter = result.reset_counter
+        self.withheld = False
         out = self._check(result)
         if self.stats.resets:
             out = dataclasses.replace(out, reset_counter=out.reset_counter + self.stats.resets)
@@ -112,16 +117,16 @@ class PoseGate:
             return r
         dt = pose[0] - self._history[-1][0]
         if dt > self.s.max_gap_s:
-            return self._suspect(r, pose, f"pose after a {dt:.1f} s gap", gap=True)
+            return self._suspect(r, pose, f"pose after a {dt:.1f} s gap")
         miss, allowed = self._predict(self._history, pose, self.s.trigger_accel_m_s2)
         if miss <= allowed:
             self._accept(pose)
             return r
         return self._suspect(r, pose, f"step {miss:.2f} m off the motion after {dt:.2f} s")
 
-    def _suspect(self, r: TrackResult, pose: Pose, why: str, gap: bool = False) -> TrackResult:
+    def _suspect(self, r: TrackResult, pose: Pose, why: str) -> TrackResult:
         self.stats.checks += 1
-        self._hold, self._hold_why, self._hold_gap = [pose], why, gap
+        self._hold, self._hold_why = [pose], why
         return self._reject(r, f"checking a {why}")
 
     def _checking(self, r: TrackResult, pose: Pose) -> TrackResult:
@@ -134,12 +139,13 @@ class PoseGate:
         hold.append(pose)
         if len(hold) <= self.s.settle_frames:
             return self._reject(r, f"checking a {self._hold_why}")
-        jumped = self._hold_gap or not self._explained(hold)
-        if jumped:
+        if not self._explained(hold):
             self.stats.resets += 1
-            if not self._hold_gap:
-                self.stats.jumps += 1
+            self.stats.jumps += 1
             self.stats.last_reason = f"{self._hold_why}: reset"
+            log.warning("pose jump the motion model cannot explain (%s): %d poses withheld, "
+                        "then sent as a reset (reset_counter +%d)", self._hold_why, len(hold) - 1,
+                        self.stats.resets)
         self._history = deque(hold)
         self._hold = None
         return r
@@ -185,6 +191,7 @@ class PoseGate:
             self._history.popleft()
 
     def _reject(self, r: TrackResult, reason: str) -> TrackResult:
+        self.withheld = True
         self.stats.rejected += 1
         self.stats.last_reason = reason
         return dataclasses.replace(r, trusted=False, p_W_m=None, R_W_C=None, lost_reason=reason)

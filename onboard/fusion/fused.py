@@ -226,7 +226,8 @@ class FusedTracker:
                                      f"{t_s - self._last_update_s:.2f} s", left_out)
             self.coasted += 1
         contributors = tuple(link.name for link, *_ in accepted)
-        return self._result(t_s, results, R_att, accepted, contributors, tuple(left_out))
+        tied = [r for _, r, _ in to_anchor]
+        return self._result(t_s, results, R_att, accepted, tied, contributors, tuple(left_out))
 
     def _gate(self, measured: list) -> tuple[list, list]:
         """(accepted, left out) by the chi-square gate (module docstring, step 4)."""
@@ -297,7 +298,7 @@ class FusedTracker:
         return self._R_W_C, np.full(3, 10.0 * AHRS_ROT_VAR)
 
     def _result(self, t_s: float, results: list[TrackResult], R_att: np.ndarray | None,
-                accepted: list, contributors: tuple[str, ...],
+                accepted: list, tied: list[TrackResult], contributors: tuple[str, ...],
                 left_out: tuple[tuple[str, str], ...]) -> TrackResult:
         R_W_C, rot_var = self._attitude(results, R_att) if (
             R_att is not None or self._R_W_C is not None or any(r.trusted for r in results)
@@ -309,8 +310,11 @@ class FusedTracker:
             info = sum(np.linalg.inv(m[3]) for m in accepted)
             sd = math.sqrt(float(np.trace(np.linalg.inv(info))) / 3.0)
             quality = int(np.clip(round(100.0 * self.p.quality_sd_m / sd), 1, 100))
+        elif tied:
+            # Only tied in this frame (the first pose, a tracker back): its own say.
+            quality = max(r.quality for r in tied)
         else:
-            quality = 10  # coasting or re-anchoring only: below the degraded threshold
+            quality = 10  # coasting on the motion model: below the degraded threshold
         head = results[0]
         clouds = tuple(self._cloud_into_world(c) for c in head.finished_keyframes)
         return TrackResult(

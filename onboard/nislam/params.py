@@ -42,7 +42,7 @@ class NislamParams:
     # noise sigma_rel z^2, at least the floor, plus the slope times the cell
     # sampling) and carried to the sub-cell peak; floor 0 = the paper's mean.
     depth_sigma_rel: float = 0.0015  # 1/m: stereo / structured-light class (1.5 mm at 1 m)
-    depth_sigma_floor_m: float = 0.001  # depth quantisation and refinement floor
+    depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
     depth_time_compensation: bool = True  # gray taken through the rotation between colour and depth stamps
     # t_z on the key axis from a plane fit of the depth differences: off, its
     # tilt is noise levered onto t_z (docs/nislam-error-budget.md)

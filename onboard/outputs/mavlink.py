@@ -74,10 +74,8 @@ def load_mavutil() -> Any:
     from pymavlink import mavutil
 
     if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
-        raise NislamError(
-            "pymavlink was loaded with MAVLink 1 (MAVLINK20 unset or 0 at its first import); "
-            "ODOMETRY needs MAVLink 2"
-        )
+        raise NislamError("pymavlink was loaded with MAVLink 1 (MAVLINK20 unset or 0 at its "
+                          "first import); ODOMETRY needs MAVLink 2")
     return mavutil
 
 
@@ -184,6 +182,7 @@ class MavlinkOutput:
         out["state"] = self.feed.state.name
         out["system_status"] = self._system_status.name
         out["reset_counter"] = self.feed.reset_counter
+        out["shared_link"] = self._shared is not None  # `received` then counts TIMESYNC only
         return out
 
     def timesync_estimate(self) -> dict[str, Any] | None:
@@ -413,12 +412,13 @@ class MavlinkOutput:
 
     def _on_message(self, msg: Any, t_rx_ns: int) -> None:
         kind = msg.get_type()
+        rejected = kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", ""))
         with self._lock:
             self._stats.received += 1
-        if kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
-            with self._lock:
-                self._stats.signature_rejects += 1
-        elif kind == "TIMESYNC" and msg.tc1 == 0:
+            self._stats.signature_rejects += int(rejected)
+        if rejected:
+            return
+        if kind == "TIMESYNC" and msg.tc1 == 0:
             if self._send("timesync", self._clock_ns(), msg.ts1):
                 with self._lock:
                     self._stats.timesync_replies += 1
