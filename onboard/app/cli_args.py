@@ -13,7 +13,7 @@ from pathlib import Path
 
 import onboard
 
-SCENARIO_NAMES = ("hover", "circle", "figure8", "corridor", "yaw-spin", "aggressive")
+SCENARIO_NAMES = ("hover", "circle", "figure8", "corridor", "yaw-spin", "aggressive", "blank-turn")
 
 
 def default_bench_sequence() -> Path:
