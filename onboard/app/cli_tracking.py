@@ -11,8 +11,10 @@ from typing import Any
 
 from onboard import NislamError
 from onboard.app.cli_args import (
+    MAX_RUN_S,
     SCENARIO_NAMES,
     attitude_error_args,
+    check_range,
     config_arg,
     default_bench_sequence,
     positive_int,
@@ -109,6 +111,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                  ("plain", "other"))]
     print("median by frame kind: " + ", ".join(
         f"{label} {ms:.2f} ms ({n})" for label, n, ms in kinds if ms is not None))
+    print("stages (p50 / p99 ms, n): " + ", ".join(
+        f"{name} {st['p50']:.2f} / {st['p99']:.2f} ({st['n']})"
+        for name, st in stats["stages_ms"].items() if st["n"]))
     if stats.get("parts_ms_median"):  # the fused tracker: each part's median and share
         total = sum(stats["parts_ms_median"].values())
         print("median by part: " + ", ".join(
@@ -196,8 +201,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from onboard.app.service import Service
     from onboard.app.sources import follow_sources, hardware_sources, replay_sources
 
-    if args.seconds is not None and not args.seconds > 0:
-        raise NislamError(f"--seconds must be > 0, got {args.seconds}")
+    check_range("--seconds", args.seconds, 0.0, MAX_RUN_S, lo_open=True)
     if args.loop and (args.seconds is None or (args.replay is None and args.sim is None)):
         raise NislamError("--loop needs --seconds and --replay or --sim")
     if (args.ahrs_profile or args.camera_size) and args.sim_follow is None:

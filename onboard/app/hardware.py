@@ -69,6 +69,10 @@ class Hardware:
         for t in self.threads:
             t.start()
 
+    def device_states(self) -> list[Any]:
+        """Each driver's drivers.device_state.DeviceState snapshot, in start order."""
+        return [t.device_state.snapshot() for t in self.threads if hasattr(t, "device_state")]
+
     def stop(self, timeout_s: float = 5.0) -> bool:
         """Stop in reverse start order; `stop_times_s` records each join."""
         ok = True

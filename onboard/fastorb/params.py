@@ -48,7 +48,7 @@ class FastOrbParams:
     max_jump_deg: float = 15.0  # ... or turned this far from it is not believed
     max_coast_frames: int = 3  # frames without a believed pose before lost
     # Landmarks from depth
-    landmark_max_sd_m: float = 0.002  # no new landmarks from a pose with a larger position sd
+    landmark_max_sd_m: float = 0.002  # no new landmarks from a pose placing them worse (1 sd, pose.landmark_sd)
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
     depth_edge_rel: float = 0.05  # 4x4 depth spread above this share of the depth: no landmark

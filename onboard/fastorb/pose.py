@@ -254,6 +254,28 @@ def world_pose_variance(T_cw: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(var), np.maximum(var, 0.0), np.nan)
 
 
+def landmark_sd(T_cw: np.ndarray, cov: np.ndarray, xyz_W: np.ndarray) -> float:
+    """The error [m, 1 sd] a pose with covariance `cov` (left perturbation
+    (phi, rho) of T_cw) puts into landmarks placed from it at the points
+    `xyz_W`: the median over the points of the largest per-axis sd. A point
+    p_C back-projected from its pixel and depth lands at R^T (p_C - t); under
+    exp(xi^) T_cw it moves by -R^T [-[p_C]x | I] xi (to first order), so its
+    covariance is J cov J^T with J = [-[p_C]x | I] (camera axes; R^T keeps
+    the spread). A point at the camera centre gives the position's own sd.
+    NaN without points or with a non-finite covariance."""
+    if len(xyz_W) == 0 or not np.all(np.isfinite(cov)):
+        return float("nan")
+    p = xyz_W @ T_cw[:3, :3].T + T_cw[:3, 3]
+    J = np.zeros((len(p), 3, 6))
+    J[:, :, 3:] = np.eye(3)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    J[:, 0, 1], J[:, 0, 2] = z, -y  # -[p]x
+    J[:, 1, 0], J[:, 1, 2] = -z, x
+    J[:, 2, 0], J[:, 2, 1] = y, -x
+    var = np.einsum("nij,jk,nik->ni", J, cov, J)
+    return float(np.sqrt(np.median(np.maximum(var, 0.0).max(axis=1))))
+
+
 def restricted(pnp: PnpResult) -> PnpResult:
     """The PnP result over its own inliers only (the tracked set keeps those)."""
     return PnpResult(pnp.T_cw, np.ones(int(pnp.inliers.sum()), bool), pnp.rms_px, pnp.cov)

@@ -54,7 +54,7 @@ from onboard.fastorb.matching import (
 )
 from onboard.fastorb.motion import FrameClock, back_project, predict_uam, project
 from onboard.fastorb.params import FastOrbParams
-from onboard.fastorb.pose import PnpResult, PnpSettings, restricted, solve_pnp
+from onboard.fastorb.pose import PnpResult, PnpSettings, landmark_sd, restricted, solve_pnp
 
 log = logging.getLogger(__name__)
 
@@ -157,13 +157,21 @@ class FastOrbTracker:
         return self._tracked_result(frame.t_s, outcome, new_key, finished)
 
     def _firm(self, outcome: Outcome) -> bool:
-        """Whether the pose is firm enough to place new landmarks with: its
-        position standard deviation (from the PnP covariance) at most
-        landmark_max_sd_m. A blurred frame's few tracks give a pose that is
-        fine to report but would carry its error into every landmark made
-        from it, and from there into every later pose."""
-        var = np.diag(outcome.pnp.cov)[3:]
-        return bool(np.all(np.isfinite(var)) and np.sqrt(var.max()) <= self.p.landmark_max_sd_m)
+        """Whether the pose is firm enough to place new landmarks with: the
+        error it would put into a landmark at the depth of its inliers (the
+        median over them of the largest per-axis standard deviation, from
+        the PnP covariance) at most landmark_max_sd_m. A blurred frame's few
+        tracks give a pose that is fine to report but would carry its error
+        into every landmark made from it, and from there into every later
+        pose. The camera position's own spread is the wrong measure: with
+        far points (beyond rgbd_max_depth_m, no disparity residual) a
+        sideways shift and a turn look alike, so the position alone is loose
+        (yaw-spin at 80 deg/s, walls 4.5 m away: 2.5-14 mm) while the
+        landmarks it places, which sit where the pixels and depths say, are
+        off by 0.7-2 mm; gating on the position stopped every key frame in a
+        fast turn until the tracks ran out of the view."""
+        sd = landmark_sd(outcome.T_cw, outcome.pnp.cov, outcome.tracked.xyz_W)
+        return bool(np.isfinite(sd) and sd <= self.p.landmark_max_sd_m)
 
     def _pose(self, moved: Tracked, prior: np.ndarray, depth_m: np.ndarray) -> Outcome | None:
         """PnP + RANSAC and refinement on the followed points; None without a
@@ -356,7 +364,12 @@ class FastOrbTracker:
         self._map.add(kf)
         self._unfinished = kf
         self._frames_since_keyframe = 0
-        self._keyframe_inliers = outcome.inliers
+        # The 65 % rule's reference is what the key frame hands on to tracking
+        # (its inliers and the points it added), not its inliers alone: after
+        # a key frame that added 480 points to 150 inliers, a reference of
+        # 150 waited for the 630 to drop below 98, under keyframe_min_inliers,
+        # so the next key frame never came (aggressive, 60 deg/s).
+        self._keyframe_inliers = len(outcome.tracked)
         return () if finished is None else (finished,)
 
     def _take_cloud(self) -> KeyframeCloud | None:
