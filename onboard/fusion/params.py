@@ -15,7 +15,7 @@ class FusionParams:
 
     # Motion model: constant velocity driven by white acceleration, its spectral
     # density's square root (m/s^2 per sqrt(Hz)): velocity sd grows by this * sqrt(dt).
-    accel_sd_m_s2: float = 1.5
+    accel_sd_m_s2: float = 5.0
     initial_speed_sd_m_s: float = 0.5  # velocity is unknown at the first pose
     # Gate: a tracker's motion whose squared Mahalanobis distance to the
     # prediction (3 dof) exceeds this is left out (12: chi-square 99.3 %).
@@ -25,7 +25,7 @@ class FusionParams:
     # Measurement noise (onboard.fusion.measurements), scaled; the defaults put
     # the reported 1 sigma over 53-77 % of the error on the synthetic flights.
     nislam_var_scale: float = 1.0
-    fastorb_var_scale: float = 1.0
+    fastorb_var_scale: float = 4.0
     key_drift_scale: float = 1.0  # a new key: the tracker's world drifts by its pose covariance times this
     nislam_peak_cells: float = 0.3  # NI-SLAM lateral sd at a firm peak [cells of the key's resolution]
     psr_full: float = 60.0  # ... growing as psr_full / PSR below this PSR
