@@ -23,7 +23,7 @@ class FusionParams:
     rejoin_sd_m: float = 0.1  # a tracker that restarted: its world's offset known to this sd
     rejoin_after_frames: int = 3  # left out by the gate this many frames in a row: re-anchored
     # Measurement noise (onboard.fusion.measurements), scaled; the defaults put
-    # the reported 1 sigma over 53-77 % of the error on the synthetic flights.
+    # the reported 1 sigma over 55-81 % of the error on the synthetic flights.
     nislam_var_scale: float = 1.0
     fastorb_var_scale: float = 4.0
     key_drift_scale: float = 1.0  # a new key: the tracker's world drifts by its pose covariance times this
