@@ -4,6 +4,7 @@ comes back, and the covariance it reports (onboard/fusion/filter.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -15,6 +16,7 @@ from onboard.core.messages import Health, RgbdFrame, TrackResult
 from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.fused import GATED, FusedTracker
+from onboard.fusion.measurements import fastorb_cov, nislam_cov
 from onboard.fusion.params import FusionParams
 
 DT = 1.0 / 30.0
@@ -203,3 +205,23 @@ def test_health_says_which_trackers_the_pose_used_and_why_one_is_left_out() -> N
     one = monitor.on_frame(0.2, results[7], None)
     assert one.state is Health.TRACKING
     assert one.reason.endswith("; nislam only; fastorb: lost: too few inliers")
+
+
+def test_measurement_covariances_follow_each_trackers_quality_signals() -> None:
+    p = FusionParams()
+    # Camera looking along world x: its optical axis (NI-SLAM's depth step) is x.
+    R = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    var_W = np.array([0.02**2, 0.01**2, 0.01**2, 1e-5, 1e-5, 1e-5])  # depth scatter 2 cm on x
+    firm = dataclasses.replace(track_result(0.0, np.zeros(3), R, pose_var=var_W, psr=p.psr_full),
+                               res_m=0.01, matched_cells=4096)
+    base = np.diag(nislam_cov(firm, p))
+    weak = np.diag(nislam_cov(dataclasses.replace(firm, psr=p.psr_full / 3), p))
+    few = np.diag(nislam_cov(dataclasses.replace(firm, matched_cells=256), p))
+    assert np.allclose(base[1:], (p.nislam_peak_cells * 0.01) ** 2)  # lateral: the peak
+    assert np.isclose(base[0], 0.02**2 * p.nislam_cells_per_sample / 4096)  # depth: the mean
+    assert np.allclose(weak[1:], 9 * base[1:]) and np.isclose(weak[0], base[0])
+    assert np.isclose(few[0], 16 * base[0]) and np.allclose(few[1:], base[1:])
+    fo = dataclasses.replace(track_result(0.0, pose_var=np.full(6, 0.002**2)), matched_cells=300)
+    assert np.allclose(np.diag(fastorb_cov(fo, p)), 0.002**2 * p.fastorb_var_scale)
+    thin = dataclasses.replace(fo, matched_cells=p.fastorb_full_inliers // 3)
+    assert np.allclose(np.diag(fastorb_cov(thin, p)), 9 * 0.002**2 * p.fastorb_var_scale)
