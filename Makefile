@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 MAVPROXY := $(BIN)/mavproxy.py
 
-.PHONY: venv run test bench bench-outputs soak
+.PHONY: venv run test bench bench-outputs soak faults
 
 venv: $(STAMP)
 
@@ -47,3 +47,8 @@ bench-outputs: $(STAMP)
 # percentiles over time, dropped frames (scripts/soak.py --help).
 soak: $(STAMP)
 	$(BIN)/python scripts/soak.py --minutes 10
+
+# The fault matrix: each fault injected into the real drivers and the service,
+# then cleared; the table goes into docs/reliability.md (tests/fault_matrix.py).
+faults: $(STAMP)
+	$(BIN)/python scripts/fault_matrix.py

@@ -17,6 +17,10 @@ on it, so the autopilot sees one companion on one serial port or UDP socket.
   backoff; `generation` counts successful opens so users can redo their
   start-up requests on a fresh connection.
 
+- `device_state` (drivers/device_state.py): no device (cannot open, lost),
+  open (nothing heard yet), streaming, silent (nothing heard for `silence_s`:
+  over UDP, nobody may be there), bad data (only bytes pymavlink rejects).
+
 pymavlink is imported lazily by `import_mavutil()`; see there for MAVLINK20.
 """
 
@@ -31,6 +35,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
+from drivers.device_state import DeviceState, State
 from onboard.core.sources import Backoff, Counters, DriverThread
 
 log = logging.getLogger(__name__)
@@ -87,8 +92,11 @@ class FcLink(DriverThread):
         poll_s: float = 0.1,
         connection_factory: Callable[..., Any] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        silence_s: float = 3.0,  # three missed 1 Hz HEARTBEATs
     ) -> None:
         super().__init__(f"fc_link:{connect}")
+        self.device_state = DeviceState("autopilot link", connect)
+        self.silence_ns = int(silence_s * 1e9)
         self.connect = connect
         self.baud = baud
         self.source_system = source_system
@@ -153,6 +161,12 @@ class FcLink(DriverThread):
     # -- thread
 
     def _run(self) -> None:
+        try:
+            self._run_link()
+        finally:
+            self.device_state.set(State.CLOSED)
+
+    def _run_link(self) -> None:
         if self._mavutil is None:
             self._mavutil = import_mavutil()
         while not self.stopping:
@@ -165,7 +179,8 @@ class FcLink(DriverThread):
                 self._read(conn)
             except OSError as e:  # serial.SerialException is an OSError
                 if not self.stopping:
-                    log.warning("%s: link lost: %s", self.connect, e)
+                    log.info("%s: link lost: %s", self.connect, e)
+                    self.device_state.set(State.NO_DEVICE, f"link lost: {e}")
                     self.counters.bump(disconnects=1)
             finally:
                 self.connected.clear()
@@ -182,6 +197,7 @@ class FcLink(DriverThread):
                            source_component=self.source_component, autoreconnect=False)
         except (OSError, ValueError) as e:
             log.debug("%s: cannot open: %s", self.connect, e)
+            self.device_state.set(State.NO_DEVICE, f"cannot open: {e}")
             self.counters.bump(open_failures=1)
             return None
         # pymavlink reports a TCP peer that closed (an autopilot or SITL
@@ -194,19 +210,41 @@ class FcLink(DriverThread):
             self._conn = conn
         self.generation += 1
         self.connected.set()
+        self.device_state.set(State.OPEN)
         self.counters.bump(opens=1)
         log.info("%s: MAVLink link open", self.connect)
         return conn
 
     def _read(self, conn: Any) -> None:
+        last_good_ns = self.clock_ns()
+        bad = 0  # BAD_DATA since the last good message
+        mav = getattr(conn, "mav", None)
+        n_bytes = lambda: getattr(mav, "total_bytes_received", 0)  # noqa: E731
+        bytes_at_good = n_bytes()
         while not self.stopping:
             msg = conn.recv_match(blocking=True, timeout=self.poll_s)
-            if msg is None:
-                continue
             t_ns = self.clock_ns()
-            if msg.get_type() == "BAD_DATA":
-                self.counters.bump(bad_data=1)
+            # UNKNOWN_<id>: pymavlink cannot check the CRC of an id it does not
+            # know, so junk parses as such: no proof of a live peer.
+            if msg is None or msg.get_type() == "BAD_DATA" or \
+                    msg.get_type().startswith("UNKNOWN_"):
+                if msg is not None:
+                    bad += 1
+                    self.counters.bump(bad_data=1)
+                quiet_s = (t_ns - last_good_ns) * 1e-9
+                if quiet_s * 1e9 >= self.silence_ns:
+                    junk = n_bytes() - bytes_at_good
+                    if bad or junk > 0:
+                        self.device_state.set(State.BAD_DATA, (
+                            f"{junk} bytes ({bad} rejected messages), no valid message for "
+                            f"{quiet_s:.0f} s (wrong baud rate or protocol?)"))
+                    else:
+                        self.device_state.set(State.SILENT, (
+                            f"nothing heard for {quiet_s:.0f} s (is the peer up and "
+                            f"sending to us?)"))
                 continue
+            last_good_ns, bad, bytes_at_good = t_ns, 0, n_bytes()
+            self.device_state.set(State.STREAMING)
             self.backoff.reset()
             self.counters.bump(received=1)
             self._dispatch(msg, t_ns)

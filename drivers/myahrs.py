@@ -15,18 +15,22 @@ sends the start-up commands, reads, stamps each sentence with the arrival of
 its first byte on the monotonic clock minus the configured latency, and
 hands body attitude samples to a sink. An unplugged device (read error) is
 reopened with backoff; a silent one gets the start-up commands again and is
-reopened when the silence lasts.
+reopened when the silence lasts. Its `device_state` (drivers/device_state.py)
+tells no device, silent (no bytes) and bad data (bytes, but no valid sample:
+garbage, NaN, or the same values frozen for `frozen_s`) apart.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import reduce
 
+from drivers.device_state import DeviceState, State
 from onboard.core.attitude import AttitudeSample, to_body_sample
 from onboard.core.rotations import IDENTITY_Q_XYZW, Quat
 from onboard.core.sources import Backoff, Counters, DriverThread
@@ -223,8 +227,16 @@ class MyAhrsDriver(DriverThread):
         serial_factory: Callable[..., object] | None = None,
         on_reading: Callable[[QuatImu], object] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        frozen_s: float = 0.5,
     ) -> None:
         super().__init__(f"myahrs:{port}")
+        self.device_state = DeviceState("myAHRS+", port)
+        # A real sensor's quaternion changes in its last digits every sample;
+        # the same values this long are a hung sensor, not a still vehicle.
+        self.frozen_ns = int(frozen_s * 1e9)
+        self._frozen_q: Quat | None = None
+        self._frozen_since_ns = 0
+        self._is_frozen = False
         self.port = port
         self.sink = sink
         self.baud = baud
@@ -250,6 +262,12 @@ class MyAhrsDriver(DriverThread):
     # -- thread
 
     def _run(self) -> None:
+        try:
+            self._run_device()
+        finally:
+            self.device_state.set(State.CLOSED)
+
+    def _run_device(self) -> None:
         while not self.stopping:
             ser = self._open()
             if ser is None:
@@ -260,7 +278,8 @@ class MyAhrsDriver(DriverThread):
                 self._serve(ser)
             except OSError as e:  # serial.SerialException is an OSError: unplugged, I/O error
                 if not self.stopping:
-                    log.warning("myAHRS+ %s: connection lost: %s", self.port, e)
+                    log.info("myAHRS+ %s: connection lost: %s", self.port, e)
+                    self.device_state.set(State.NO_DEVICE, f"connection lost: {e}")
                     self.counters.bump(disconnects=1)
             finally:
                 self._serial = None
@@ -276,9 +295,11 @@ class MyAhrsDriver(DriverThread):
             ser = factory(self.port, self.baud, self.read_timeout_s)
         except (OSError, ValueError) as e:  # absent, busy, no permission, bad settings
             log.debug("myAHRS+ %s: cannot open: %s", self.port, e)
+            self.device_state.set(State.NO_DEVICE, f"cannot open: {_short(e)}")
             self.counters.bump(open_failures=1)
             return None
         self._serial = ser
+        self.device_state.set(State.OPEN)
         self.counters.bump(opens=1)
         log.info("myAHRS+ %s: opened", self.port)
         return ser
@@ -287,19 +308,24 @@ class MyAhrsDriver(DriverThread):
         self._configure(ser)
         last_sample_ns = self.clock_ns()
         last_config_ns = last_sample_ns
+        bytes_since = 0  # bytes read since the last valid sample
         while not self.stopping:
             data = ser.read(max(1, ser.in_waiting))  # returns after read_timeout_s at most
             now_ns = self.clock_ns()
             if data:
                 readings = self.parser.feed(data, now_ns)
-                if readings:
-                    self._deliver(readings)
+                bytes_since += len(data)
+                if readings and self._deliver(readings):
                     last_sample_ns = now_ns
+                    bytes_since = 0
                     self.backoff.reset()
                 self.counters.set(parser=self.parser.stats)
             silent_ns = now_ns - last_sample_ns
+            if silent_ns >= self.silence_ns:
+                self._no_samples(silent_ns, bytes_since)
             if silent_ns >= self.reopen_after_ns:
-                log.warning("myAHRS+ %s: silent for %.1f s, reopening", self.port, silent_ns * 1e-9)
+                log.info("myAHRS+ %s: no valid sample for %.1f s, reopening", self.port,
+                         silent_ns * 1e-9)
                 self.counters.bump(reopens_for_silence=1)
                 return
             if silent_ns >= self.silence_ns and now_ns - last_config_ns >= self.silence_ns:
@@ -314,17 +340,50 @@ class MyAhrsDriver(DriverThread):
         ser.flush()
         self.counters.bump(commands_sent=3)
 
-    def _deliver(self, readings: list[QuatImu]) -> None:
-        delivered = 0
+    def _no_samples(self, silent_ns: int, bytes_since: int) -> None:
+        """No valid sample for `silent_ns`: silent, or bad data when bytes came."""
+        p = self.parser.stats
+        if self._is_frozen and bytes_since:
+            return  # valid sentences, but frozen values: told in _frozen
+        if bytes_since:
+            self.device_state.set(State.BAD_DATA, (
+                f"{bytes_since} bytes but no valid sample for {silent_ns * 1e-9:.1f} s "
+                f"(checksum errors {p.checksum_errors}, malformed {p.malformed}, "
+                f"garbage lines {p.garbage_lines})"))
+        else:
+            self.device_state.set(State.SILENT, f"no bytes for {silent_ns * 1e-9:.1f} s")
+
+    def _deliver(self, readings: list[QuatImu]) -> int:
+        samples = []
         for r in readings:
             self.last_reading = r
             if self.on_reading is not None:
                 self.on_reading(r)
+            if self._frozen(r):
+                continue
             sample = to_body_sample(r.t_ns - self.latency_ns, r.q_xyzw, self.q_B_A_xyzw)
             if sample is not None:
-                self.sink(sample)
-                delivered += 1
-        self.counters.bump(samples=delivered)
+                samples.append(sample)
+        if samples:  # told before the samples go: "recovered" precedes the first good one
+            self.device_state.set(State.STREAMING)
+        for sample in samples:
+            self.sink(sample)
+        self.counters.bump(samples=len(samples))
+        return len(samples)
+
+    def _frozen(self, r: QuatImu) -> bool:
+        """True while the values have not changed for `frozen_ns` (not delivered)."""
+        if r.q_xyzw != self._frozen_q:
+            self._frozen_q, self._frozen_since_ns = r.q_xyzw, r.t_ns
+            self._is_frozen = False
+            return False
+        if r.t_ns - self._frozen_since_ns < self.frozen_ns:
+            return False
+        self._is_frozen = True
+        self.device_state.set(State.BAD_DATA, (
+            f"values frozen for {(r.t_ns - self._frozen_since_ns) * 1e-9:.1f} s "
+            f"(q = {', '.join(f'{c:g}' for c in r.q_xyzw)})"))
+        return True
 
     def _interrupt(self) -> None:
         ser = self._serial
@@ -337,6 +396,13 @@ def _pyserial_factory(port: str, baud: int, timeout_s: float):
     import serial  # pyserial: a core dependency, imported where the port opens
 
     return serial.Serial(port, baud, timeout=timeout_s, write_timeout=1.0, exclusive=True)
+
+
+def _short(e: BaseException) -> str:
+    """pyserial repeats itself ("[Errno 2] could not open port X: [Errno 2]
+    No such file or directory: 'X'"): the OS's words for the errno."""
+    errno_ = getattr(e, "errno", None)
+    return os.strerror(errno_) if isinstance(errno_, int) and errno_ > 0 else str(e)
 
 
 def _close_quietly(ser) -> None:

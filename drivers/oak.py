@@ -26,10 +26,16 @@ USB loss: depthai closes the queues (or raises RuntimeError) when the device
 vanishes; no frame for `frame_timeout_s` counts as loss too. The driver then
 closes the pipeline and device and reopens with backoff; the camera
 re-enumerates with another USB id after boot, so nothing is cached.
+
+Its `device_state` (drivers/device_state.py) says no device (not found, or
+lost), silent (open, no frame for `frame_timeout_s`) or streaming. The first
+search is short (`FIRST_SEARCH_S`), so a missing camera is told within a
+second or two of start; later ones use `search_s`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import logging
 import math
@@ -43,6 +49,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from drivers.device_state import DeviceState, State
 from onboard.core.attitude import AttitudeSample, to_body_sample
 from onboard.core.camera import CameraModel
 from onboard.core.messages import RgbdFrame
@@ -55,6 +62,7 @@ DEPTH_SCALE_MM = 1000.0  # StereoDepth RAW16: millimetres per metre
 STEREO_PRESETS = ("DEFAULT", "FAST_ACCURACY", "FAST_DENSITY", "HIGH_DETAIL", "ROBOTICS",
                   "DENSITY", "ACCURACY")
 IMU_WORLDS = ("enu", "ned")
+FIRST_SEARCH_S = 1.0  # a camera plugged in at boot enumerates within this
 # q_NED_ENU (xyzw): 180 deg about (x + y)/sqrt(2) maps East-North-Up onto North-East-Down.
 _Q_NED_ENU: Quat = (math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0)
 
@@ -256,6 +264,7 @@ class OakDriver(DriverThread):
         clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         super().__init__("oak")
+        self.device_state = DeviceState("OAK-D", settings.device or "(first found)")
         self.settings = settings
         self.imu_sink = imu_sink
         self.dai_loader = dai_loader
@@ -288,16 +297,34 @@ class OakDriver(DriverThread):
     # -- thread
 
     def _run(self) -> None:
-        dai = self.dai_loader()
+        try:
+            self._run_device()
+        finally:
+            self.device_state.set(State.CLOSED)
+
+    def _run_device(self) -> None:
+        try:
+            dai = self.dai_loader()
+        except ImportError as e:
+            self.device_state.set(State.NO_DEVICE, f"depthai is not installed: {e}")
+            return
+        first = True
         while not self.stopping:
+            settings = self.settings
+            if first:
+                settings = dataclasses.replace(settings,
+                                               search_s=min(settings.search_s, FIRST_SEARCH_S))
+                first = False
             try:
-                session = self.session_factory(dai, self.settings)
+                session = self.session_factory(dai, settings)
             except RuntimeError as e:  # depthai reports XLink/boot problems as RuntimeError
                 log.info("OAK: cannot open: %s", e)
+                self.device_state.set(State.NO_DEVICE, f"cannot open: {e}")
                 self.counters.bump(open_failures=1)
                 if self._sleep(self.backoff.next()):
                     break
                 continue
+            self.device_state.set(State.OPEN)
             self.counters.bump(opens=1)
             self._camera = session.camera
             self._camera_ready.set()
@@ -308,7 +335,9 @@ class OakDriver(DriverThread):
                 self._serve(dai, session)
             except (RuntimeError, dai.MessageQueue.QueueException) as e:
                 if not self.stopping:
-                    log.warning("OAK %s: device lost: %s", session.name, e)
+                    log.info("OAK %s: device lost: %s", session.name, e)
+                    if not self.device_state.state.failed:
+                        self.device_state.set(State.NO_DEVICE, f"device lost: {e}")
                     self.counters.bump(disconnects=1)
             finally:
                 try:
@@ -337,12 +366,16 @@ class OakDriver(DriverThread):
                 self.slot.put(frame)
                 self.counters.bump(frames=1, frames_dropped_in_queue=len(groups) - 1,
                                    depth_resized=int(resized))
+                self.device_state.set(State.STREAMING)
                 last_frame_ns = now_ns
                 self.backoff.reset()
             elif session.rgbd_queue.isClosed():
+                self.device_state.set(State.NO_DEVICE, "disconnected (frame queue closed)")
                 raise RuntimeError("frame queue closed (device disconnected)")
             elif now_ns - last_frame_ns > timeout_ns:
                 self.counters.bump(frame_timeouts=1)
+                self.device_state.set(State.SILENT,
+                                      f"no frame for {self.settings.frame_timeout_s:g} s")
                 raise RuntimeError(f"no frame for {self.settings.frame_timeout_s:g} s")
 
     def _deliver_imu(self, data: Any) -> None:

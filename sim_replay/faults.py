@@ -52,7 +52,7 @@ from sim_replay.fault_plan import (
     usable_frames,
 )
 from sim_replay.fault_writer import apply_plan
-from sim_replay.outdir import FAULTS_MANIFEST, prepare_out_dir
+from sim_replay.outdir import FAULTS_MANIFEST, finish_out_dir, prepare_out_dir
 from sim_replay.tum_files import load_camera
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,7 @@ def inject_faults(src: Path | str, dst: Path | str, items: tuple[FaultItem, ...]
         "expected": expected,
     }
     (dst / FAULTS_MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+    finish_out_dir(dst)
     log.info("%s: damaged copy of %s written (%s)", dst, src, manifest["spec"])
     return manifest
 

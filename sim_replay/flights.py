@@ -127,6 +127,18 @@ def _yaw_spin(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return p, 0.3 + np.radians(90.0) * ramp(t, ramp_s=4.0)
 
 
+def _blank_turn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Turning at 30 deg/s in the middle of the half-painted room, swaying
+    0.3 m: each turn has a stretch of about 4 s facing the plain east half."""
+    s = ramp(t)
+    p = np.stack([
+        -0.5 + 0.3 * np.sin(2 * np.pi * 0.1 * s),
+        0.2 * np.sin(2 * np.pi * 0.07 * s + 0.5),
+        -1.3 + 0.1 * np.sin(2 * np.pi * 0.13 * s),
+    ], axis=1)
+    return p, np.pi + np.radians(30.0) * s
+
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s for s in (
         Scenario("hover", "room", "holding position, a few cm of drift", _hover),
@@ -136,6 +148,8 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("corridor", "corridor", "up and down a 14 m corridor, 1.1 m/s, turns at "
                  "the ends", _corridor),
         Scenario("yaw-spin", "room", "turning on the spot up to 90 deg/s", _yaw_spin),
+        Scenario("blank-turn", "half-painted", "turning at 30 deg/s in a room whose east "
+                 "half is plain paint (a textureless stretch each turn)", _blank_turn),
         Scenario("aggressive", "room", "fast figure eight, 1.5 m/s, jinks, climbs, yaw "
                  "swings to 90 deg/s", _aggressive),
     )

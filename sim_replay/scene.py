@@ -202,7 +202,39 @@ def plane_scene(distance_m: float = 2.0, size_m: float = 20.0) -> Scene:
                                     np.array([distance_m, half, half])), ())
 
 
-SCENES = {"room": room_scene, "corridor": corridor_scene, "plane": plane_scene}
+def half_painted_scene() -> Scene:
+    """The room's size, its east half (x > 0) painted plain (textureless: walls,
+    floor, ceiling and the boxes there), its west half textured as the room.
+    Facing east a keypoint tracker finds almost nothing; the painted boxes'
+    faces, lit differently, still give the correlation tracker edges."""
+    lo, hi = np.array([-4.0, -3.5, -2.8]), np.array([4.0, 3.5, 0.0])
+    west = room_surfaces("west", lo, np.array([0.0, hi[1], hi[2]]))
+    east = room_surfaces("east", np.array([0.0, lo[1], lo[2]]), hi, wall_material="paint",
+                         floor_material="paint", ceiling_material="paint")
+    # Each half's own x = 0 face would close the room in two: leave both out.
+    surfaces = [s for s in west if not s.name.endswith("wall_x+")]
+    surfaces += [s for s in east if not s.name.endswith("wall_x-")]
+    painted = [
+        _box("block_n", (3.3, 4.0), (-1.8, -0.6), 1.4),
+        _box("block_e", (1.5, 2.5), (2.8, 3.5), 1.0),
+        _box("block_s", (2.0, 2.8), (-3.5, -2.9), 1.7),
+        _box("plinth", (3.4, 4.0), (1.0, 1.6), 0.8),
+    ]
+    textured = [
+        _box("shelf_w", (-4.0, -3.6), (0.4, 2.2), 1.6),
+        _box("crate_c", (-3.8, -3.1), (-3.3, -2.6), 0.7),
+        _box("crate_d", (-1.6, -0.9), (3.0, 3.5), 0.5),
+    ]
+    for b in painted:
+        surfaces += box_surfaces(b, "paint")
+    for b in textured:
+        surfaces += box_surfaces(b, "cardboard")
+    return Scene("half-painted", tuple(surfaces), Box("interior", lo, hi),
+                 (*painted, *textured))
+
+
+SCENES = {"room": room_scene, "corridor": corridor_scene, "plane": plane_scene,
+          "half-painted": half_painted_scene}
 
 
 def make_scene(name: str) -> Scene:

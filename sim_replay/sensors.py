@@ -144,8 +144,8 @@ class AhrsModel:
     dropout: float = 0.0
 
     def __post_init__(self) -> None:
-        if not self.rate_hz > 0:
-            raise NislamError(f"AHRS rate must be > 0 Hz, got {self.rate_hz}")
+        if not 0 < self.rate_hz <= 1000:  # beyond any AHRS; a typo, not a sensor
+            raise NislamError(f"AHRS rate must be in (0, 1000] Hz, got {self.rate_hz:g}")
         if not 0 <= self.dropout < 1:
             raise NislamError(f"AHRS dropout must be in [0, 1), got {self.dropout}")
 

@@ -40,7 +40,7 @@ from sim_replay.attitude import AttitudeErrorModel
 from sim_replay.fault_plan import parse_spec
 from sim_replay.faults import inject_faults
 from sim_replay.flights import Flight, scenario
-from sim_replay.outdir import SIM_MANIFEST, prepare_out_dir
+from sim_replay.outdir import SIM_MANIFEST, finish_out_dir, prepare_out_dir
 from sim_replay.render import Renderer
 from sim_replay.scene import make_scene
 from sim_replay.sensors import (
@@ -63,6 +63,13 @@ if hasattr(cv2, "IMWRITE_PNG_FILTER"):
     _PNG_PARAMS += [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
 
 
+# Bounds on what a user can ask for (a typo must not render for hours or run
+# out of memory): 10 minutes is 18 000 frames at 30 Hz, several GB of PNGs.
+MAX_SIM_SECONDS = 600.0
+MAX_CAMERA_HZ = 120.0
+MAX_IMAGE_PX = 4096
+
+
 @dataclass(frozen=True)
 class SimOptions:
     """Everything a synthetic flight depends on besides the scenario name."""
@@ -81,12 +88,15 @@ class SimOptions:
     t0_s: float = 1000.0  # recording clock at take-off (a monotonic clock, not 0)
 
     def __post_init__(self) -> None:
-        if not (self.seconds > 0 and math.isfinite(self.seconds)):
-            raise NislamError(f"--seconds must be > 0, got {self.seconds}")
-        if not self.camera_hz > 0:
-            raise NislamError(f"camera rate must be > 0 Hz, got {self.camera_hz}")
-        if self.width < 16 or self.height < 16:
-            raise NislamError(f"image size must be at least 16x16, got {self.width}x{self.height}")
+        if not 0 < self.seconds <= MAX_SIM_SECONDS:
+            raise NislamError(f"a synthetic flight's --seconds must be in (0, {MAX_SIM_SECONDS:g}], "
+                              f"got {self.seconds:g}")
+        if not 0 < self.camera_hz <= MAX_CAMERA_HZ:
+            raise NislamError(f"camera rate must be in (0, {MAX_CAMERA_HZ:g}] Hz, "
+                              f"got {self.camera_hz:g}")
+        if not (16 <= self.width <= MAX_IMAGE_PX and 16 <= self.height <= MAX_IMAGE_PX):
+            raise NislamError(f"image size must be within 16x16 .. {MAX_IMAGE_PX}x{MAX_IMAGE_PX}, "
+                              f"got {self.width}x{self.height}")
         if self.seed < 0:
             raise NislamError(f"--seed must be >= 0, got {self.seed}")
         if not 0 < self.depth_scale <= 65535:
@@ -189,7 +199,9 @@ def simulate(
     fault_spec = parse_spec(faults) if faults else None
     prepare_out_dir(out_dir)
     if fault_spec is None:
-        return _simulate_into(scen.name, out_dir, opts, progress)
+        result = _simulate_into(scen.name, out_dir, opts, progress)
+        finish_out_dir(out_dir)
+        return result
     # Render a clean flight beside the output, then write the damaged copy.
     clean = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.clean.", dir=out_dir.parent))
     try:

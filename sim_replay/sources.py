@@ -105,6 +105,26 @@ class ReplayClock:
                 return False
 
 
+def pass_direction(index: np.ndarray, k: int) -> int:
+    """+1 when schedule entry k plays its pass forwards, -1 backwards (a
+    pass's first entry repeats the previous pass's last index)."""
+    d = int(index[k]) - int(index[k - 1]) if k > 0 else 0
+    if d == 0 and k + 1 < len(index):
+        d = int(index[k + 1]) - int(index[k])
+    return -1 if d < 0 else 1
+
+
+def played_frame(frame: RgbdFrame, t_play: float, direction: int) -> RgbdFrame:
+    """The frame stamped with its played time; the depth's own stamp moves
+    with it through the same map (mirrored on a backward pass, as the
+    attitude samples are): left on the recording's clock, every frame of a
+    second pass asked the attitude for a time long gone ("no attitude")."""
+    depth_t = frame.depth_t_s
+    if depth_t is not None:
+        depth_t = t_play + direction * (depth_t - frame.t_s)
+    return dataclasses.replace(frame, t_s=t_play, depth_t_s=depth_t)
+
+
 def pingpong_schedule(t_s: np.ndarray, passes: int, span_s: tuple[float, float],
                       gap_s: float) -> tuple[np.ndarray, np.ndarray]:
     """(index into `t_s`, played stamp) for `passes` alternating passes over
@@ -180,7 +200,7 @@ class ReplayCamera(DriverThread):
                     self.unreadable += 1
                     continue
                 if frame.t_s != t_play:
-                    frame = dataclasses.replace(frame, t_s=float(t_play))
+                    frame = played_frame(frame, float(t_play), pass_direction(index, k))
                 if not self.clock.wait_until(frame.t_s + self.delivery_s, self._stop):
                     return
                 self.slot.put(frame)

@@ -27,6 +27,7 @@ _BASE_BGR = {
     "tiles_floor": (0.55, 0.58, 0.60),
     "cardboard": (0.36, 0.52, 0.66),
     "concrete": (0.58, 0.58, 0.56),
+    "paint": (0.74, 0.76, 0.78),  # plain emulsion: no grain, no spots (textureless to keypoints)
 }
 MATERIALS = tuple(_BASE_BGR)
 
@@ -156,6 +157,12 @@ def make_texture(material: str, size_px: tuple[int, int], texel_m: float, seed: 
     elif material == "concrete":
         img *= (1.0 + 0.28 * grain + 0.15 * blotch)[..., None]
         _spots(rng, img, 1500.0, texel_m, (0.001, 0.006), 0.35)
+    elif material == "paint":
+        # Plain emulsion: a faint mottle (2-10 cm, ~5 grey levels) and broad
+        # unevenness, far below a keypoint detector's corner contrast (FAST
+        # threshold 20 after CLAHE), yet a pattern for dense correlation.
+        mottle = fbm(rng, (h, w), max(0.02 * px, 2.0), max(0.1 * px, 4.0), gain=0.8)
+        img *= (1.0 + 0.025 * mottle + 0.06 * blotch)[..., None]
     else:  # plaster
         img *= (1.0 + 0.2 * grain + 0.1 * blotch)[..., None]
         _spots(rng, img, 600.0, texel_m, (0.002, 0.015), 0.3)

@@ -26,6 +26,7 @@ from onboard.core.camera import CameraModel, undistort_maps
 from onboard.core.messages import RgbdFrame
 from onboard.core.trajectory import Trajectory, parse_tum_lines
 from sim_replay.images import decode_image
+from sim_replay.outdir import check_complete
 from sim_replay.tum_files import (
     DEFAULT_GT_MAX_GAP_S,
     DEFAULT_MAX_ASSOC_DT_S,
@@ -124,6 +125,7 @@ class _Pair:
     t_s: float
     rgb_path: Path
     depth_path: Path
+    depth_t_s: float | None = None  # the depth image's own stamp
 
 
 class Sequence:
@@ -212,7 +214,7 @@ class Sequence:
             depth_raw = cv2.remap(depth_raw, m.depth_map_x, m.depth_map_y, cv2.INTER_NEAREST,
                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         depth_m = depth_raw.astype(np.float32) / np.float32(self.camera.depth_scale)
-        return RgbdFrame(t_s=pair.t_s, bgr=bgr, depth_m=depth_m)
+        return RgbdFrame(t_s=pair.t_s, bgr=bgr, depth_m=depth_m, depth_t_s=pair.depth_t_s)
 
     def load_all(self, max_frames: int | None = None) -> list[RgbdFrame]:
         """Decode up to `max_frames` frames into memory (benchmarks)."""
@@ -272,6 +274,7 @@ def open_sequence(
     seq_dir = Path(seq_dir)
     if not seq_dir.is_dir():
         raise NislamError(f"sequence folder {seq_dir} does not exist")
+    check_complete(seq_dir)
     for name in ("rgb.txt", "depth.txt"):
         if not (seq_dir / name).is_file():
             raise NislamError(f"{seq_dir} has no {name}: not a TUM-layout RGB-D sequence")
@@ -305,7 +308,7 @@ def open_sequence(
         missing = [f for (_t, f), ok in zip(rgb + depth, rgb_exists + depth_exists) if not ok]
         log.debug("%s: %d listed files missing, e.g. %s", seq_dir, len(missing), missing[:5])
     pairs = [
-        _Pair(rgb[i][0], seq_dir / rgb[i][1], seq_dir / depth[j][1])
+        _Pair(rgb[i][0], seq_dir / rgb[i][1], seq_dir / depth[j][1], depth[j][0])
         for i, j in pairs_idx
         if rgb_exists[i] and depth_exists[j]
     ]

@@ -5,6 +5,7 @@ and attitude.txt. Bad lines are counted, never fatal.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import re
@@ -219,22 +220,40 @@ def associate(
 def drop_stale_entries(
     entries: list[tuple[float, str]],
 ) -> tuple[list[tuple[float, str]], int, int]:
-    """Keep, in list order, the entries whose stamp is later than every stamp
-    kept before them. Returns (kept, duplicates, out_of_order): a repeated stamp
-    is a duplicate, an earlier one out of order. Like the onboard loop, which
-    drops a stale frame rather than reorder, nothing is moved."""
-    kept: list[tuple[float, str]] = []
-    duplicates = out_of_order = 0
-    last = -math.inf
-    for entry in entries:
-        if entry[0] > last:
-            kept.append(entry)
-            last = entry[0]
-        elif entry[0] == last:
-            duplicates += 1
+    """Keep, in list order, the longest run of entries whose stamps rise
+    (the longest strictly increasing subsequence; of equally long ones, the
+    one taking the earliest lines). Returns (kept, duplicates, out_of_order):
+    a left-out entry whose stamp repeats a kept one is a duplicate, any other
+    is out of order. Nothing is moved, as the onboard loop drops a stale frame
+    rather than reorder; but one bad line whose stamp runs ahead (a garbage
+    line, a clock glitch) costs that line only, not every good frame stamped
+    before it, as a "later than everything kept so far" rule would."""
+    n = len(entries)
+    t = [e[0] for e in entries]
+    # longest[i]: length of the longest rising run starting at entry i. Built
+    # right to left: a rising run from i is a falling run of -t ending at i in
+    # reversed order, found by patience sorting (O(n log n)).
+    longest = [0] * n
+    tails: list[float] = []
+    for i in range(n - 1, -1, -1):
+        k = bisect.bisect_left(tails, -t[i])
+        if k == len(tails):
+            tails.append(-t[i])
         else:
-            out_of_order += 1
-    return kept, duplicates, out_of_order
+            tails[k] = -t[i]
+        longest[i] = k + 1
+    keep = [False] * n
+    need = len(tails)
+    last = -math.inf
+    for i in range(n):  # the earliest entry that can still start a run of `need`
+        if need and t[i] > last and longest[i] == need:
+            keep[i] = True
+            last = t[i]
+            need -= 1
+    kept = [e for e, k in zip(entries, keep) if k]
+    kept_stamps = {e[0] for e in kept}
+    duplicates = sum(1 for e, k in zip(entries, keep) if not k and e[0] in kept_stamps)
+    return kept, duplicates, n - len(kept) - duplicates
 
 
 def stream_gaps(t_s) -> tuple[int, list[tuple[float, float]]]:

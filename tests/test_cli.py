@@ -26,7 +26,8 @@ REPLAY_KEYS = {
     "frames", "frames_tracked", "frames_lost", "tracked_share", "keyframes", "resets",
     "ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "frame_ms_median", "frame_ms_p95",
     "frame_ms_max", "hz", "attitude_source", "attitude_offset_s", "skipped", "tracker",
-    "sequence",
+    "sequence", "rpe_lag1_m", "rpe_lag3_m", "rpe_lag10_m", "rpe_lag30_m", "rpe_rot_lag1_deg",
+    "path_length_ratio", "keyframe_changes", "keyframe_jump_median_m", "keyframe_jump_max_m",
 }
 BENCH_KEYS = {"frames", "frame_ms_median", "frame_ms_p95", "frame_ms_max", "hz", "tracker"}
 
@@ -53,6 +54,7 @@ def replay_out(fixture_seq: Path, tmp_path_factory: pytest.TempPathFactory) -> P
     proc = nislam("replay", str(fixture_seq), "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     assert "ATE RMSE" in proc.stdout and "frames      16" in proc.stdout
+    assert "RPE frames" in proc.stdout and "key changes" in proc.stdout
     return out
 
 
@@ -65,6 +67,8 @@ def test_replay_writes_every_result(replay_out: Path) -> None:
     assert metrics["frames_tracked"] + metrics["frames_lost"] == FIXTURE_FRAMES
     assert metrics["frames_tracked"] >= 10
     assert 0.0 < metrics["ate_rmse_m"] < 0.05
+    assert metrics["rpe_lag1_m"] > 0.0 and metrics["path_length_ratio"] > 0.0
+    assert metrics["rpe_lag30_m"] is None  # 16 frames: no pair 30 apart
     assert metrics["keyframes"] >= 1
     assert metrics["frame_ms_median"] > 0 and metrics["hz"] > 0
     assert metrics["tracker"] == "nislam"

@@ -6,9 +6,10 @@ ODOMETRY; the feed must match the vehicle's truth as closely as the tracker
 replays the same flight, at the camera's rate.
 
 Small images and a grid to match (320x240, NI-SLAM's grid 240x180 instead
-of 480x360: a quarter of the tracker's work), so that the camera's 30 Hz
-holds on this shared 2-core machine while others run (with the default grid
-the tracker alone took 18 ms a frame at load 8, and the feed fell to 22-24 Hz).
+of 480x360: a quarter of the tracker's work) and a 20 Hz camera, so that
+the loop keeps pace on this shared 2-core machine while others run (at 30 Hz
+a full suite beside five other jobs, load 10, fell to 11 Hz; at 20 Hz the
+same load held 20.0 Hz, ATE 3.3 / 12.9 mm).
 Replay accuracy of the same flights with this profile (`nislam sim F
 --seconds 5.5 --width 320 --height 240`, then `nislam replay --config` with
 the grid, perfect AHRS, 2026-11-25): circle 3.1 mm, aggressive 9.4 mm ATE
@@ -33,6 +34,9 @@ from sim_replay.flights import Flight, scenario
 NISLAM = REPO / ".venv" / "bin" / "nislam"
 VEHICLE = REPO / "tests" / "peers" / "vehicle_sim.py"
 FLIGHT_S, HOVER_S = 5.0, 1.5
+# 20 Hz, not the camera's 30: the loop must keep pace on a shared CI machine
+# whatever else runs; the rate itself is benchmarked (docs/closed_loop.md).
+CAMERA_HZ = 20.0
 ATE_BAR_M = {"circle": 0.007, "aggressive": 0.02}  # ~2x the replay figures above
 PROFILE = """[mavlink]
 state_dir = "{state}"
@@ -40,6 +44,7 @@ state_dir = "{state}"
 grid_width = 240
 grid_height = 180
 [sim_follow]
+camera_hz = {camera_hz}
 width = 320
 height = 240
 start_height_m = 1.3
@@ -58,7 +63,7 @@ def fly(flight: str, tmp_path: Path) -> tuple[list[dict], float, dict]:
         "--hover-s", str(HOVER_S)))
     vehicle.wait_for(lambda ls: any(m.get("ready") for m in ls), 60, "vehicle ready")
     cfg = tmp_path / f"{flight}.toml"
-    cfg.write_text(PROFILE.format(state=tmp_path / "state"))
+    cfg.write_text(PROFILE.format(state=tmp_path / "state", camera_hz=CAMERA_HZ))
     out = tmp_path / flight
     svc = JsonLinesProcess([str(NISLAM), "run", "--sim-follow", flight, "--mavlink",
                             f"udpout:127.0.0.1:{port}", "--config", str(cfg), "--out", str(out)])
@@ -78,7 +83,7 @@ def test_the_feed_follows_the_vehicle_it_steers(flight: str, tmp_path: Path) -> 
     odometry, start, metrics = fly(flight, tmp_path)
     t = np.array([m["time_usec"] * 1e-6 for m in odometry])
     during = (t >= start) & (t <= start + FLIGHT_S)
-    # The feed's rate while the vehicle flies: the camera's 30 Hz, less what
+    # The feed's rate while the vehicle flies: the camera's rate, less what
     # the renderer or this (shared, loaded) machine dropped.
     hz = during.sum() / FLIGHT_S
     # Capture on our clock -> received by the vehicle on the same clock.
@@ -98,7 +103,7 @@ def test_the_feed_follows_the_vehicle_it_steers(flight: str, tmp_path: Path) -> 
           f"p99 {p99:.1f} ms; late frames {metrics['skipped']['late_frames']}; render "
           f"{metrics['source_stats']['render_ms_median']:.1f} ms median")
     assert len({m["reset_counter"] for m in odometry}) == 1
-    assert hz >= 25.0
+    assert hz >= 0.8 * CAMERA_HZ
     assert ate <= ATE_BAR_M[flight]
     assert (latency_ms > 0).all() and p50 < 100.0
     # The service scored the same poses against the rendered camera's truth.
@@ -117,7 +122,7 @@ def test_the_vehicles_start_becomes_the_ekf_origin(tmp_path: Path) -> None:
         VEHICLE, f"udpin:127.0.0.1:{port}", "--flight", "circle", "--seconds", "0.5"))
     vehicle.wait_for(lambda ls: any(m.get("ready") for m in ls), 60, "vehicle ready")
     cfg = tmp_path / "origin.toml"
-    cfg.write_text(PROFILE.format(state=tmp_path / "state"))
+    cfg.write_text(PROFILE.format(state=tmp_path / "state", camera_hz=CAMERA_HZ))
     svc = JsonLinesProcess([str(NISLAM), "run", "--sim-follow", "circle", "--mavlink",
                             f"udpout:127.0.0.1:{port}", "--config", str(cfg),
                             "--out", str(tmp_path / "out")])

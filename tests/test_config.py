@@ -86,7 +86,7 @@ def test_wrong_type_is_named(tmp_path: Path, toml: str, expected: str) -> None:
         ("[nislam]\npsr_lost = -1.0\n", "'nislam.psr_lost' must be >= 0, got -1.0"),
         ("[attitude]\nnoise_deg = -0.5\n", "'attitude.noise_deg' must be >= 0, got -0.5"),
         ("[attitude]\nseed = -1\n", "'attitude.seed' must be >= 0, got -1"),
-        ("[tracker]\nname = \"orb\"\n", "'tracker.name' must be one of 'nislam', 'fastorb'"),
+        ("[tracker]\nname = \"orb\"\n", "'tracker.name' must be one of 'nislam', 'fastorb', 'fused'"),
         (
             "[nislam]\nmin_depth_m = 7.0\n",
             "'nislam.min_depth_m' (7) must be < 'nislam.max_depth_m'",

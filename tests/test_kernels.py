@@ -103,7 +103,8 @@ def test_depth_difference_sums_match_numpy(du: int, dv: int) -> None:
     got = kern.depth_difference_sums(*args, 1)
     want = _sums_reference(*args)
     assert 100 < got[kern.N] < 0.25 * h * w
-    assert np.allclose(got, want, rtol=1e-6, atol=1e-9)
+    assert np.allclose(got[:kern.SUM_W], want, rtol=1e-6, atol=1e-9)
+    assert got[kern.SUM_W] == got[kern.N]  # unweighted: weights of 1
     # Too few cells for the median: nothing is summed.
     assert not kern.depth_difference_sums(*args, 10**6).any()
 
@@ -122,3 +123,35 @@ def test_block_means_are_masked_block_averages(window) -> None:
     with np.errstate(invalid="ignore", divide="ignore"):
         assert np.allclose(g, np.where(n > 0, blocks(gray * mask) / n, 0.0), atol=1e-6)
         assert np.allclose(z, np.where(n > 0, blocks(depth * mask) / n, 0.0), atol=1e-6)
+
+
+def test_weighted_depth_sums_carry_differences_to_the_sub_cell_shift() -> None:
+    """A slanted plane shifted by a non-integer number of cells: carried along
+    the key's depth gradient to the sub-cell shift, every difference is -t_z
+    exactly (a plane's central differences are exact); at the whole-cell shift
+    (the paper's mean) the slope times the rounding biases it."""
+    h, w, du, dv, fu, fv, tz = 40, 50, 3, -2, 0.3, -0.4, 0.02
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    plane = lambda u, v: 2.0 + 0.01 * u + 0.005 * v  # noqa: E731
+    kd = plane(uu, vv).astype(np.float32)
+    cd = (plane(uu - du - fu, vv - dv - fv) - tz).astype(np.float32)
+    ones = np.ones((h, w), np.float32)
+    args = (kd, ones, ones, cd, ones, ones, du, dv, 0.1, 0.1, 0.01, 1)
+    got = kern.depth_difference_sums(*args, fu, fv, 0.0015, 0.001)
+    assert got[kern.N] > 100
+    assert got[kern.SUM_D] / got[kern.SUM_W] == pytest.approx(-tz, abs=2e-6)
+    plain = kern.depth_difference_sums(*args)
+    assert plain[kern.SUM_W] == plain[kern.N]  # unweighted: weights of 1
+    bias = -(fu * 0.01 + fv * 0.005)
+    assert plain[kern.SUM_D] / plain[kern.N] == pytest.approx(-tz + bias, abs=2e-6)
+
+
+def test_warped_gray_is_the_gray_of_the_homography_image() -> None:
+    """Identity: the strided gray; a shift by whole pixels: the shifted gray."""
+    bgr = (RNG.random((48, 64, 3)) * 255).astype(np.uint8)
+    depth = np.ones((48, 64), np.float32)
+    _, gray = kern.strided_depth_gray(bgr, depth, 2, 0.1, 5.0)
+    assert np.abs(kern.warped_gray(bgr, 2, np.eye(3)).astype(int) - gray).max() <= 1
+    shift = np.array([[1.0, 0.0, 4.0], [0.0, 1.0, 2.0], [0.0, 0.0, 1.0]])
+    warped = kern.warped_gray(bgr, 2, shift).astype(int)
+    assert np.abs(warped[:-1, :-2] - gray[1:, 2:]).max() <= 1

@@ -43,6 +43,11 @@ def count(kind: str, n: int):
     return lambda lines: sum(m.get("mavpackettype") == kind for m in lines) >= n
 
 
+def answers(peer: JsonLinesProcess) -> list[dict]:
+    """Our answers to the peer's TIMESYNC requests (not our own requests, tc1 = 0)."""
+    return [m for m in msgs(peer, "TIMESYNC") if m["tc1"] != 0]
+
+
 def scenario() -> list[tuple[bool, int, float, int]]:
     """(trusted, tracker reset_counter, x [m], quality) per frame at 30 Hz."""
     rows = [(False, 0, 0.0, 0)] * 2  # 0-1 initialising
@@ -77,7 +82,8 @@ def odometry_run() -> JsonLinesProcess:
             out.publish(r)
         n_poses = sum(row[0] for row in scenario())
         peer.wait_for(count("ODOMETRY", n_poses), WAIT_S, "every pose")
-        peer.wait_for(count("TIMESYNC", 6), WAIT_S, "timesync replies")
+        peer.wait_for(lambda lines: len([m for m in lines if m.get("mavpackettype") == "TIMESYNC"
+                                         and m["tc1"] != 0]) >= 6, WAIT_S, "timesync replies")
         peer.wait_for(count("SET_HOME_POSITION", 1), WAIT_S, "home")
         assert out.stats()["dropped"] == 0
     finally:
@@ -164,7 +170,7 @@ def test_statustext_on_every_state_change(odometry_run: JsonLinesProcess) -> Non
 
 
 def test_timesync_answered_with_our_monotonic_clock(odometry_run: JsonLinesProcess) -> None:
-    replies = msgs(odometry_run, "TIMESYNC")
+    replies = answers(odometry_run)
     assert replies
     for m in replies:
         # ts1 echoes the request, stamped by the peer (time.monotonic_ns) when
@@ -345,7 +351,9 @@ def test_feed_over_a_shared_autopilot_link() -> None:
         for i in range(5):
             out.publish(track_result(T0 + i * DT, [0.03 * i, 2.0, -1.5], R_W_C))
         peer.wait_for(count("ODOMETRY", 5), WAIT_S, "poses over the shared link")
-        peer.wait_for(count("TIMESYNC", 2), WAIT_S, "timesync over the shared link")
+        peer.wait_for(lambda lines: sum(m.get("mavpackettype") == "TIMESYNC" and m["tc1"] != 0
+                                        for m in lines) >= 2, WAIT_S, "timesync over the link")
+        assert out.stats()["timesync_answers"] >= 1  # ours, answered through the reader
     finally:
         if out is not None:
             out.close()
@@ -355,4 +363,5 @@ def test_feed_over_a_shared_autopilot_link() -> None:
     assert [m["time_usec"] for m in odo] == [round((T0 + i * DT) * 1e6) for i in range(5)]
     assert odo[0]["q"] == pytest.approx([S, 0.0, 0.0, S], abs=1e-7)
     assert msgs(peer, "HEARTBEAT")[0]["system_status"] == 1
-    assert all(m["tc1"] != 0 for m in msgs(peer, "TIMESYNC"))
+    ours = [m for m in msgs(peer, "TIMESYNC") if m["tc1"] == 0]  # our own requests
+    assert ours and all(m["ts1"] > 0 for m in ours)

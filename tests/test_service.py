@@ -5,6 +5,7 @@ process (tests/mavlink_peer.py) and a zenoh subscriber in this one, all on
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import socket
@@ -125,6 +126,7 @@ def run_with_peers(seq: Path, out: Path, *extra: str, sigterm_after_poses: int |
         svc.stop()
         peer.stop()
         states = sub.states()
+        svc.statuses = list(sub.statuses)  # type: ignore[attr-defined]
         sub.close()
     msgs = [m for m in peer.lines if "mavpackettype" in m and m.get("src_component") == 197]
     return rc, msgs, states, svc
@@ -207,6 +209,24 @@ def test_service_feeds_the_autopilot_and_stops_cleanly_on_sigterm(
     assert metrics["frames_tracked"] >= len(odometry)
     assert any(line.startswith("ATE RMSE") for line in svc.text), svc.text
     assert any("Hz" in line and "key frames" in line for line in svc.text)  # statistics lines
+    # Latency (onboard/app/latency.py): each pose written to the link after the
+    # tracker was done with it and before the peer received it (one host clock).
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert run["untrusted_sent"] == 0 and run["frames_processed"] == metrics["frames"]
+    assert run["latency_ms"]["kind"] == "capture_to_written" and run["first_pose_s"] > 0
+    rows = {round(float(r["capture_s"]) * 1e6): r
+            for r in csv.DictReader((tmp_path / "out" / "latency.csv").open())}
+    received_ms = {m["time_usec"]: m["t"] * 1e3 - m["time_usec"] / 1e3 for m in odometry}
+    both = [(float(rows[k]["done_ms"]), float(rows[k]["written_ms"]), received_ms[k])
+            for k in received_ms if k in rows and rows[k]["written_ms"]]
+    assert len(both) >= 0.9 * len(odometry)
+    # (written: when the send returned; the peer on the other core may read it
+    # before this process, preempted, takes the time: a few ms at most)
+    assert all(done <= written <= received + 5.0 for done, written, received in both), both
+    assert np.median([r - w for _d, w, r in both]) >= -0.5, both
+    assert any("latency" in line and "p99" in line for line in svc.text)  # the summary
+    status = [s for s in svc.statuses if s.get("latency_ms", {}).get("p50") is not None]
+    assert status and status[-1]["latency_ms"]["kind"] == "capture_to_written"
 
 
 def test_a_restart_mid_flight_tells_the_autopilot_with_reset_counter_and_time_goes_on(

@@ -1,10 +1,17 @@
 """Time the tracker alone on frames already decoded and undistorted in memory.
 
-Only `tracker.track()` is inside the timer, and everything it does counts
-(projection, correlation, depth translation, calibration, key-frame work):
-that is the per-frame budget the onboard loop has to fit in. A back end run
-in slices after each frame (FastORB's local BA, `backend_step()`) is timed
-apart: per slice and per key frame.
+Only `tracker.track()` is inside the tracker's timer, and everything it does
+counts (projection, correlation, depth translation, calibration, key-frame
+work): that is the per-frame budget the onboard loop has to fit in.
+
+Beside it, each other stage a frame goes through, timed on its own (`stages_ms`):
+the source (decoding the recording's files; undistortion, the colour and
+depth remaps, when the camera is distorted), and the outputs' encoding on
+their threads (the MAVLink feed's sample and ODOMETRY packet, the zenoh pose's
+JSON, each finished key frame's map message). `nislam run --out` measures the
+same stages in the running service (run.json `stages_ms`, onboard/app/latency.py).
+A back end run in slices after each frame (FastORB's local BA,
+`backend_step()`) is timed apart too: per slice and per key frame.
 """
 
 from __future__ import annotations
@@ -18,6 +25,8 @@ import cv2
 import numpy as np
 
 from onboard.app.config import Config
+from onboard.core.camera import undistort_maps
+from onboard.core.messages import TrackResult
 from onboard.fusion.registry import make_tracker
 from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
 from sim_replay.tum import open_sequence
@@ -67,12 +76,14 @@ def bench(
         seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s
     )
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
-    frames = seq.load_all(max_frames)
+    frames, stages = read_timed(seq, max_frames)
     frame_ms: list[float] = []
     backend_ms: list[float] = []  # FastORB's back-end slices, run after a frame and timed apart
     job_ms: list[float] = []  # ... summed per key frame (one local BA)
+    results: list[TrackResult] = []
     # by kind: a frame that starts a key or re-uses a kept one does more work
     kind_ms: dict[str, list[float]] = {"keyframe": [], "reused": [], "plain": []}
+    parts_ms: dict[str, list[float]] = {}  # the fused tracker's parts (last_part_ms)
     for _ in range(repeat):
         tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
         for frame in frames:
@@ -80,9 +91,13 @@ def bench(
             result = tracker.track(frame, attitude)
             dt_ms = (time.perf_counter() - t0) * 1e3
             frame_ms.append(dt_ms)
+            if len(results) < len(frames):
+                results.append(result)
             kind = ("keyframe" if result.new_keyframe
                     else "reused" if result.keyframe_reused else "plain")
             kind_ms[kind].append(dt_ms)
+            for part, ms in getattr(tracker, "last_part_ms", {}).items():
+                parts_ms.setdefault(part, []).append(ms)
             step = getattr(tracker, "backend_step", None)
             if step is not None:
                 t0 = time.perf_counter()
@@ -95,6 +110,8 @@ def bench(
     for kind, ms in kind_ms.items():
         by_kind[f"{kind}_frames"] = len(ms) // repeat
         by_kind[f"{kind}_frames_ms_median"] = float(np.median(ms)) if ms else None
+    stages["tracker"] = frame_ms
+    stages.update(output_times(results, cfg))
     return {
         "sequence": str(Path(seq_dir).resolve()),
         "tracker": cfg.tracker.name,
@@ -103,6 +120,8 @@ def bench(
         **frame_time_stats(frame_ms),
         **by_kind,
         **backend_stats(backend_ms, job_ms),
+        "stages_ms": {k: stage_stats(v) for k, v in stages.items()},
+        "parts_ms_median": {part: float(np.median(ms)) for part, ms in parts_ms.items()},
     }
 
 
@@ -114,3 +133,65 @@ def backend_stats(slice_ms: list[float], job_ms: list[float]) -> dict[str, Any]:
     return {"backend_slices": len(slice_ms), "backend_slice_ms_median": q(slice_ms, 50),
             "backend_slice_ms_p95": q(slice_ms, 95), "backend_keyframes": len(job_ms),
             "backend_keyframe_ms_median": q(job_ms, 50), "backend_keyframe_ms_p95": q(job_ms, 95)}
+
+
+def stage_stats(ms: list[float]) -> dict[str, float | int | None]:
+    if not ms:
+        return {"p50": None, "p95": None, "p99": None, "n": 0}
+    p = np.percentile(np.asarray(ms), (50, 95, 99))
+    return {"p50": float(p[0]), "p95": float(p[1]), "p99": float(p[2]), "n": len(ms)}
+
+
+def read_timed(seq: Any, max_frames: int | None) -> tuple[list[Any], dict[str, list[float]]]:
+    """The frames decoded (and undistorted) into memory, each read timed
+    ("source"), and the undistortion's two remaps timed again on their own."""
+    maps = undistort_maps(seq.camera) if seq.camera.is_distorted else None
+    frames: list[Any] = []
+    read_ms: list[float] = []
+    remap_ms: list[float] = []
+    for i in range(len(seq)):
+        if max_frames is not None and len(frames) >= max_frames:
+            break
+        t0 = time.perf_counter()
+        frame = seq.read_frame(i)
+        read_ms.append((time.perf_counter() - t0) * 1e3)
+        if frame is None:
+            continue
+        frames.append(frame)
+        if maps is not None:
+            t0 = time.perf_counter()
+            cv2.remap(frame.bgr, maps.color_map1, maps.color_map2, cv2.INTER_LINEAR)
+            cv2.remap(frame.depth_m, maps.depth_map_x, maps.depth_map_y, cv2.INTER_NEAREST)
+            remap_ms.append((time.perf_counter() - t0) * 1e3)
+    return frames, {"source_read": read_ms, "undistortion": remap_ms}
+
+
+def output_times(results: list[TrackResult], cfg: Config) -> dict[str, list[float]]:
+    """The outputs' per-frame encoding on their own threads, without a link:
+    the MAVLink sample and ODOMETRY packet, the zenoh pose's JSON, and each
+    finished key frame's map message."""
+    import json
+
+    from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe
+    from onboard.outputs.mavlink import load_mavutil
+    from onboard.outputs.mavlink_feed import VisionFeed, odometry_args
+    from onboard.outputs.zenoh_out import pose_message
+
+    mav = load_mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=197)
+    feed = VisionFeed.from_config(cfg.mavlink)
+    out: dict[str, list[float]] = {"mavlink_encode": [], "zenoh_pose_encode": [],
+                                   "zenoh_map_encode": []}
+    for i, r in enumerate(results):
+        t0 = time.perf_counter()
+        sample = feed.update(r).sample
+        if sample is not None:
+            mav.odometry_encode(*odometry_args(sample)).pack(mav)
+            out["mavlink_encode"].append((time.perf_counter() - t0) * 1e3)
+        t0 = time.perf_counter()
+        json.dumps(pose_message(r, i), allow_nan=False)
+        out["zenoh_pose_encode"].append((time.perf_counter() - t0) * 1e3)
+        for cloud in r.finished_keyframes:
+            t0 = time.perf_counter()
+            encode_keyframe(MapKeyframe.from_cloud(cloud))
+            out["zenoh_map_encode"].append((time.perf_counter() - t0) * 1e3)
+    return out

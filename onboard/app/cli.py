@@ -17,6 +17,7 @@ from onboard import NislamError
 from onboard.app.cli_data import add_data_parsers
 from onboard.app.cli_fleet import add_fleet_parsers
 from onboard.app.cli_tracking import add_tracking_parsers
+from onboard.app.doctor import add_doctor_parser
 
 log = logging.getLogger("nislam")
 
@@ -42,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_tracking_parsers(sub, verbose)
     add_data_parsers(sub, verbose)
     add_fleet_parsers(sub, verbose)
+    add_doctor_parser(sub, verbose)
     return parser
 
 

@@ -12,8 +12,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import onboard
+from onboard import NislamError
+from sim_replay.flights import SCENARIOS
 
-SCENARIO_NAMES = ("hover", "circle", "figure8", "corridor", "yaw-spin", "aggressive")
+SCENARIO_NAMES = tuple(SCENARIOS)  # one list: the simulator's own
 
 
 def default_bench_sequence() -> Path:
@@ -29,6 +31,28 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+# Upper bounds on what a user can type: a typo (an extra zero, 1e8) must be a
+# one-line error, not an hour of work or the kernel's out-of-memory kill.
+MAX_RUN_S = 30 * 86400.0  # run / record / ground --seconds: a month of service
+MAX_RATE_HZ = 1000.0
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
+def check_range(flag: str, value: float | None, lo: float, hi: float, *,
+                lo_open: bool = False) -> None:
+    """One line (NislamError) unless `value` is None or a number in [lo, hi]
+    ((lo, hi] with `lo_open`); NaN and infinities are out of range."""
+    if value is None:
+        return
+    if (value > lo if lo_open else value >= lo) and value <= hi:
+        return
+    raise NislamError(f"{flag} must be in {'(' if lo_open else '['}{_num(lo)}, {_num(hi)}], "
+                      f"got {_num(value)}")
 
 
 def config_arg(p: argparse.ArgumentParser) -> None:

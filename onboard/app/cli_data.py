@@ -12,8 +12,11 @@ from typing import Any
 
 from onboard import NislamError
 from onboard.app.cli_args import (
+    MAX_RATE_HZ,
+    MAX_RUN_S,
     SCENARIO_NAMES,
     attitude_error_args,
+    check_range,
     config_arg,
     positive_int,
     stop_on_signals,
@@ -145,6 +148,7 @@ def _add_listen_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
 
 
 def cmd_listen(args: argparse.Namespace) -> int:
+    check_range("--pose-hz", args.pose_hz, 0.0, MAX_RATE_HZ, lo_open=True)
     from onboard.app.config import load_config
     from onboard.outputs.listen import listen
 
@@ -188,8 +192,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     from onboard.app.config import load_config
     from onboard.app.record import record
 
-    if args.seconds is not None and not args.seconds > 0:
-        raise NislamError(f"--seconds must be > 0, got {args.seconds}")
+    check_range("--seconds", args.seconds, 0.0, MAX_RUN_S, lo_open=True)
+    check_range("--replay-speed", args.replay_speed, 0.01, 100.0)
     if not 0.01 <= args.replay_speed <= 100.0:
         raise NislamError(f"--replay-speed must be in [0.01, 100], got {args.replay_speed}")
     cfg = load_config(args.config)

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from onboard import NislamError
-from onboard.app.cli_args import config_arg, stop_on_signals
+from onboard.app.cli_args import MAX_RUN_S, check_range, config_arg, stop_on_signals
 
 log = logging.getLogger("nislam")
 
@@ -91,8 +91,8 @@ def cmd_ground(args: argparse.Namespace) -> int:
     from onboard.outputs.ground import GroundStation, run_ground
     from onboard.outputs.zenoh_session import open_waiting, session_config
 
-    if args.seconds is not None and not args.seconds > 0:
-        raise NislamError(f"--seconds must be > 0, got {args.seconds}")
+    check_range("--seconds", args.seconds, 0.0, MAX_RUN_S, lo_open=True)
+    check_range("--table-period", args.table_period, 0.0, 3600.0)
     overrides: dict[str, Any] = {"zenoh.mode": args.mode}
     if args.connect is not None:
         overrides["zenoh.connect"] = args.connect

@@ -11,8 +11,10 @@ from typing import Any
 
 from onboard import NislamError
 from onboard.app.cli_args import (
+    MAX_RUN_S,
     SCENARIO_NAMES,
     attitude_error_args,
+    check_range,
     config_arg,
     default_bench_sequence,
     positive_int,
@@ -53,7 +55,7 @@ def _add_replay_bench_parsers(sub: Any, verbose: argparse.ArgumentParser) -> Non
 
 def _add_common(p: argparse.ArgumentParser) -> None:
     config_arg(p)
-    p.add_argument("--tracker", metavar="NAME", help="tracker (nislam, fastorb)")
+    p.add_argument("--tracker", metavar="NAME", help="tracker (nislam, fastorb, fused)")
     p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")
     p.add_argument("--no-local-ba", action="store_true",
                    help="FastORB without its back end (local mapping and BA)")
@@ -113,6 +115,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                  ("plain", "other"))]
     print("median by frame kind: " + ", ".join(
         f"{label} {ms:.2f} ms ({n})" for label, n, ms in kinds if ms is not None))
+    print("stages (p50 / p99 ms, n): " + ", ".join(
+        f"{name} {st['p50']:.2f} / {st['p99']:.2f} ({st['n']})"
+        for name, st in stats["stages_ms"].items() if st["n"]))
+    if stats.get("parts_ms_median"):  # the fused tracker: each part's median and share
+        total = sum(stats["parts_ms_median"].values())
+        print("median by part: " + ", ".join(
+            f"{part} {ms:.2f} ms ({100.0 * ms / total:.0f} %)"
+            for part, ms in stats["parts_ms_median"].items()))
     if stats["backend_keyframes"]:
         print(f"back end (after the frames, apart): {stats['backend_slices']} slices, median "
               f"{stats['backend_slice_ms_median']:.2f} ms, p95 {stats['backend_slice_ms_p95']:.2f}"
@@ -144,7 +154,7 @@ def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
     rn.add_argument("--zenoh-mode", choices=("peer", "client"),
                     help="zenoh mode ([zenoh] mode; client: of a fleet router, docs/fleet.md)")
     rn.add_argument("--vehicle", metavar="ID", help="zenoh vehicle id ([zenoh] vehicle)")
-    rn.add_argument("--tracker", metavar="NAME", help="primary tracker (nislam, fastorb)")
+    rn.add_argument("--tracker", metavar="NAME", help="primary tracker (nislam, fastorb, fused)")
     src = rn.add_mutually_exclusive_group()
     src.add_argument("--replay", type=Path, metavar="SEQ_DIR",
                      help="replay a recording at real-time pace instead of the hardware")
@@ -201,8 +211,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from onboard.app.service import Service
     from onboard.app.sources import follow_sources, hardware_sources, replay_sources
 
-    if args.seconds is not None and not args.seconds > 0:
-        raise NislamError(f"--seconds must be > 0, got {args.seconds}")
+    check_range("--seconds", args.seconds, 0.0, MAX_RUN_S, lo_open=True)
     if args.loop and (args.seconds is None or (args.replay is None and args.sim is None)):
         raise NislamError("--loop needs --seconds and --replay or --sim")
     if (args.ahrs_profile or args.camera_size) and args.sim_follow is None:

@@ -3,6 +3,7 @@
 Sections map one-to-one onto frozen dataclasses: `[replay]` -> ReplayConfig,
 `[attitude]` -> AttitudeErrorConfig, `[tracker]` -> TrackerConfig,
 `[nislam]` / `[fastorb]` -> the trackers' own `NislamParams` / `FastOrbParams`,
+`[fusion]` -> `FusionParams` (the fused tracker),
 `[mavlink]` -> MavlinkConfig
 `[zenoh]` -> ZenohConfig (the outputs) and `[router]` -> RouterConfig
 (`nislam router`); `[ahrs]`, `[myahrs]`,
@@ -45,6 +46,7 @@ from onboard.app.config_sections import (
     TrackerConfig,
 )
 from onboard.fastorb.params import FastOrbParams
+from onboard.fusion.params import FusionParams
 from onboard.nislam.params import NislamParams
 from onboard.outputs.settings import MavlinkConfig, RouterConfig, ZenohConfig
 
@@ -63,6 +65,7 @@ class Config:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     nislam: NislamParams = field(default_factory=NislamParams)
     fastorb: FastOrbParams = field(default_factory=FastOrbParams)
+    fusion: FusionParams = field(default_factory=FusionParams)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     router: RouterConfig = field(default_factory=RouterConfig)
@@ -81,6 +84,7 @@ SECTIONS: dict[str, type] = {
     "tracker": TrackerConfig,
     "nislam": NislamParams,
     "fastorb": FastOrbParams,
+    "fusion": FusionParams,
     "mavlink": MavlinkConfig,
     "zenoh": ZenohConfig,
     "router": RouterConfig,

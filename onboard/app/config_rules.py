@@ -64,24 +64,36 @@ class Check:
         return self.problem(value)
 
 
-_MAVLINK_HOST_PORT = re.compile(r"^(udp|udpin|udpout|udpbcast|tcp|tcpin|mcast):[^:]*:\d{1,5}$")
-
-
 _ZENOH_ENDPOINT = re.compile(r"^[a-z0-9]+/\S+$")
 
 
 _KEY_CHUNK = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
+_MAVLINK_SCHEMES = ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin", "mcast")
+_HOST = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.-]*$")  # a name or an IPv4 address
+_SERIAL = re.compile(r"^(/\S+|COM\d+)(,\d+)?$")  # /dev/ttyACM0, /dev/serial/by-id/..,57600
+
+
 def _mavlink_connect_problem(value: str) -> str | None:
-    """pymavlink connection strings: `udpout:HOST:PORT`, `tcp:HOST:PORT`, ...,
-    or a serial device with an optional `,BAUD`."""
-    if not value.strip():
+    """pymavlink connection strings: `udpout:HOST:PORT`, `tcp:HOST:PORT`, ...
+    (port 1-65535), or a serial device path with an optional `,BAUD`."""
+    v = value.strip()
+    if not v:
         return "must not be empty"
-    scheme = value.split(":", 1)[0]
-    if ":" in value and scheme in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin", "mcast"):
-        if not _MAVLINK_HOST_PORT.match(value):
-            return f"must look like '{scheme}:HOST:PORT'"
+    if _SERIAL.match(v):
+        return None
+    scheme, sep, rest = v.partition(":")
+    if not sep or scheme not in _MAVLINK_SCHEMES:
+        return (f"must be SCHEME:HOST:PORT (SCHEME one of {', '.join(_MAVLINK_SCHEMES)}) "
+                f"or a serial device (/dev/...[,BAUD]), got {v!r}")
+    if scheme == "mcast" and not rest:
+        return None  # pymavlink's default group and port
+    host, sep, port = rest.rpartition(":")
+    if not sep or not _HOST.match(host):
+        return f"must look like '{scheme}:HOST:PORT', got {v!r}"
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        return f"port must be in 1..65535, got {port!r}"
     return None
 
 
@@ -137,6 +149,16 @@ FRACTION = Range(lo=0.0, hi=1.0)  # [0, 1]
 ANY = Range()
 
 
+# Upper bounds on sizes, rates, durations and queue lengths: a typo (an extra
+# zero) is one line at start-up, not an out-of-memory kill or a service that
+# waits an hour before it notices a dead sensor.
+DURATION = Range(0.0, 3600.0, lo_open=True)  # (0 s, 1 h]
+DURATION0 = Range(0.0, 3600.0)  # [0 s, 1 h]
+QUEUE = Range(1, 10_000)  # items held in memory
+IMAGE_PX = Range(16, 4096)
+BAUD = Range(1200, 12_000_000)
+
+
 # Range rules by qualified key. Keys not listed fall back to DEFAULT_RULES by
 # type (ints >= 0; floats only need to be finite, which the type check does).
 RULES: dict[str, Range | Choice | Check] = {
@@ -184,6 +206,19 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.time_offset_s": ANY,
     "nislam.time_offset_max_s": NON_NEGATIVE,
     # FastORB (onboard/fastorb/); other ints >= 0, other floats finite
+    "fusion.accel_sd_m_s2": POSITIVE,
+    "fusion.initial_speed_sd_m_s": POSITIVE,
+    "fusion.gate_chi2": POSITIVE,
+    "fusion.rejoin_after_frames": POSITIVE,
+    "fusion.nislam_var_scale": POSITIVE,
+    "fusion.fastorb_var_scale": POSITIVE,
+    "fusion.psr_full": NON_NEGATIVE,
+    "fusion.nislam_peak_cells": POSITIVE,
+    "fusion.nislam_cells_per_sample": Range(lo=1.0),
+    "fusion.min_sd_m": POSITIVE,
+    "fusion.max_coast_s": NON_NEGATIVE,
+    "fusion.axes_gain": FRACTION,
+    "fusion.quality_sd_m": POSITIVE,
     "fastorb.clahe_clip_limit": POSITIVE,
     "fastorb.clahe_tiles": POSITIVE,
     "fastorb.orb_features": POSITIVE,
@@ -228,7 +263,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fastorb.reloc_min_inliers": Range(lo=6),
     # outputs: MAVLink
     "mavlink.connect": Check(_mavlink_connect_problem),
-    "mavlink.baud": POSITIVE,
+    "mavlink.baud": BAUD,
     "mavlink.system_id": Range(1, 255),
     "mavlink.component_id": Range(1, 255),
     "mavlink.message": Choice(MAVLINK_MESSAGES),
@@ -238,11 +273,11 @@ RULES: dict[str, Range | Choice | Check] = {
     "mavlink.degraded_quality": Range(0, 100),
     "mavlink.jump_m": NON_NEGATIVE,
     "mavlink.jump_speed_m_s": POSITIVE,
-    "mavlink.velocity_window_s": NON_NEGATIVE,
-    "mavlink.heartbeat_period_s": POSITIVE,
-    "mavlink.stale_s": POSITIVE,
-    "mavlink.reconnect_s": POSITIVE,
-    "mavlink.queue_frames": POSITIVE,
+    "mavlink.velocity_window_s": Range(0.0, 10.0),
+    "mavlink.heartbeat_period_s": Range(0.0, 60.0, lo_open=True),
+    "mavlink.stale_s": DURATION,
+    "mavlink.reconnect_s": DURATION,
+    "mavlink.queue_frames": QUEUE,
     "mavlink.origin_lat_deg": Range(-90.0, 90.0),
     "mavlink.origin_lon_deg": Range(-180.0, 180.0),
     "mavlink.origin_alt_m": ANY,
@@ -252,9 +287,9 @@ RULES: dict[str, Range | Choice | Check] = {
     "zenoh.mode": Choice(ZENOH_MODES),
     "zenoh.connect": Check(_zenoh_endpoints_problem),
     "zenoh.listen": Check(_zenoh_endpoints_problem),
-    "zenoh.status_period_s": POSITIVE,
-    "zenoh.queue_frames": POSITIVE,
-    "zenoh.map_max_mb": POSITIVE,
+    "zenoh.status_period_s": DURATION,
+    "zenoh.queue_frames": QUEUE,
+    "zenoh.map_max_mb": Range(0.0, 65536.0, lo_open=True),
     "zenoh.map_rate_kb_s": NON_NEGATIVE,
     "zenoh.pose_priority": Choice(ZENOH_PRIORITIES),
     "zenoh.status_priority": Choice(ZENOH_PRIORITIES),
@@ -266,47 +301,47 @@ RULES: dict[str, Range | Choice | Check] = {
     "mavlink.signing_link_id": Range(0, 255),
     # drivers and recording
     "ahrs.source": Choice(AHRS_SOURCES),
-    "ahrs.buffer_samples": Range(lo=2),
-    "ahrs.max_age_s": POSITIVE,
-    "ahrs.max_gap_s": POSITIVE,
+    "ahrs.buffer_samples": Range(2, 1_000_000),
+    "ahrs.max_age_s": DURATION,
+    "ahrs.max_gap_s": DURATION,
     "myahrs.port": Check(lambda v: None if v.strip() else "must not be empty"),
-    "myahrs.baud": POSITIVE,
+    "myahrs.baud": BAUD,
     "myahrs.divider": Range(1, 100),
     "myahrs.latency_ms": ANY,
     "myahrs.q_B_A_xyzw": Check(_unit_quaternion_problem),
-    "myahrs.silence_s": POSITIVE,
-    "myahrs.reopen_s": POSITIVE,
-    "myahrs.reconnect_max_s": POSITIVE,
+    "myahrs.silence_s": DURATION,
+    "myahrs.reopen_s": DURATION,
+    "myahrs.reconnect_max_s": DURATION,
     "autopilot.rate_hz": Range(0.0, 1000.0, lo_open=True),
     "autopilot.target_component": Range(0, 255),
     "autopilot.latency_ms": ANY,
     "autopilot.q_B_A_xyzw": Check(_unit_quaternion_problem),
-    "autopilot.retry_s": POSITIVE,
-    "autopilot.clock_window_s": POSITIVE,
-    "oak.width": POSITIVE,
-    "oak.height": POSITIVE,
-    "oak.fps": POSITIVE,
-    "oak.mono_width": POSITIVE,
-    "oak.mono_height": POSITIVE,
+    "autopilot.retry_s": DURATION,
+    "autopilot.clock_window_s": DURATION,
+    "oak.width": IMAGE_PX,
+    "oak.height": IMAGE_PX,
+    "oak.fps": Range(0.0, 120.0, lo_open=True),
+    "oak.mono_width": IMAGE_PX,
+    "oak.mono_height": IMAGE_PX,
     "oak.stereo_preset": Choice(STEREO_PRESETS),
     "oak.imu_rate_hz": Range(1, 400),
     "oak.imu_world": Choice(IMU_WORLDS),
     "oak.imu_q_B_A_xyzw": Check(_unit_quaternion_problem),
-    "oak.search_s": POSITIVE,
-    "oak.frame_timeout_s": POSITIVE,
-    "oak.reconnect_max_s": POSITIVE,
+    "oak.search_s": Range(0.0, 60.0, lo_open=True),
+    "oak.frame_timeout_s": DURATION,
+    "oak.reconnect_max_s": DURATION,
     "record.png_compression": Range(0, 9),
-    "record.queue_frames": POSITIVE,
-    "record.start_timeout_s": POSITIVE,
+    "record.queue_frames": QUEUE,
+    "record.start_timeout_s": DURATION,
     "service.fallback_tracker": Choice(("",) + tuple(n for n in TRACKER_NAMES if n != "nislam")),
-    "service.return_after_s": NON_NEGATIVE,
-    "service.frame_timeout_s": POSITIVE,
-    "service.degraded_gap_s": POSITIVE,
-    "service.start_grace_s": POSITIVE,
-    "service.recover_s": NON_NEGATIVE,
+    "service.return_after_s": DURATION0,
+    "service.frame_timeout_s": DURATION,
+    "service.degraded_gap_s": DURATION,
+    "service.start_grace_s": DURATION,
+    "service.recover_s": DURATION0,
     "service.poll_s": Range(0.001, 1.0),
     "service.attitude_wait_s": Range(0.0, 1.0),
-    "service.stats_period_s": POSITIVE,
+    "service.stats_period_s": DURATION,
     "service.replay_speed": Range(0.01, 100.0),
     # nislam run --sim-follow
     "sim_follow.request": Choice(SIM_FOLLOW_REQUESTS),

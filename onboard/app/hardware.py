@@ -8,6 +8,7 @@ that reads the config sections ([ahrs], [myahrs], [autopilot], [oak] and the
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -29,10 +30,15 @@ def camera_mount_q(cfg: Config) -> Quat:
     return matrix_to_quat(mount_rotation(cfg.mavlink.mount, cfg.mavlink.mount_q_B_C_xyzw))
 
 
-def make_attitude_buffer(cfg: Config) -> AttitudeBuffer:
+def make_attitude_buffer(cfg: Config, check_stamps: bool = True) -> AttitudeBuffer:
     a = cfg.ahrs
     R_B_C = mount_rotation(cfg.mavlink.mount, cfg.mavlink.mount_q_B_C_xyzw)
-    return AttitudeBuffer(R_B_C, a.buffer_samples, a.max_gap_s)
+    # Live stamps are on time.monotonic_ns: a sample seconds away from it is a
+    # time jump, dropped and told (onboard/core/attitude.py).
+    label = {"myahrs": "myAHRS+", "autopilot": "autopilot attitude",
+             "oak_imu": "OAK IMU"}.get(a.source, "AHRS")
+    return AttitudeBuffer(R_B_C, a.buffer_samples, a.max_gap_s,
+                          now_ns=time.monotonic_ns if check_stamps else None, label=label)
 
 
 def oak_settings(cfg: Config, imu: bool) -> OakSettings:
@@ -68,6 +74,12 @@ class Hardware:
     def start(self) -> None:
         for t in self.threads:
             t.start()
+
+    def device_states(self) -> list[Any]:
+        """Each driver's drivers.device_state.DeviceState snapshot, in start order."""
+        snaps = [t.device_state.snapshot() for t in self.threads if hasattr(t, "device_state")]
+        stamps = self.buffer.stamps.snapshot()  # the AHRS's stamps: shown while they are wrong
+        return snaps + [stamps] if stamps.state.failed else snaps
 
     def stop(self, timeout_s: float = 5.0) -> bool:
         """Stop in reverse start order; `stop_times_s` records each join."""

@@ -16,14 +16,20 @@ The recovery dwell keeps a stuttering camera or a flickering match from
 flapping the state (each change is a STATUSTEXT on the telemetry link): the
 state turns good only after it has stayed good for `recover_s`.
 
-The MAVLink heartbeat (system_status) and the zenoh status carry the state.
+The MAVLink heartbeat (system_status) and the zenoh status carry the state;
+with `devices` (each driver's state, drivers/device_state.py) every report
+carries those too, and a driver that fails names itself in the reason
+("lost (no frames for 2.1 s; OAK-D no device (...))").
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from onboard.core.messages import Health, HealthReport, TrackResult
+from onboard.fusion.fused import fusion_text
 
 QUALITY_HYSTERESIS = 5  # as the MAVLink feed's DEGRADED <-> ACTIVE
 
@@ -42,8 +48,10 @@ class HealthThresholds:
 class HealthMonitor:
     """Feed it every loop turn; `report` is the current state."""
 
-    def __init__(self, thresholds: HealthThresholds, start_s: float) -> None:
+    def __init__(self, thresholds: HealthThresholds, start_s: float,
+                 devices: Callable[[], Sequence[Any]] | None = None) -> None:
         self.th = thresholds
+        self.devices = devices  # -> snapshots with .text() and .state.failed
         self.start_s = start_s
         self.report = HealthReport(Health.STARTING, "waiting for sensors")
         self._last_frame_s: float | None = None
@@ -106,12 +114,20 @@ class HealthMonitor:
             problems.append(f"fallback tracker {self._fallback} (no attitude)")
         if self._gap_s > th.degraded_gap_s:
             problems.append(f"frame gap {self._gap_s:.2f} s")
+        fused = f"; {fusion_text(r)}" if r.contributors or r.left_out else ""
         if problems:
-            return Health.DEGRADED, ", ".join(problems)
-        return Health.TRACKING, f"quality {r.quality}"
+            return Health.DEGRADED, ", ".join(problems) + fused
+        return Health.TRACKING, f"quality {r.quality}{fused}"
 
     def _set(self, state: Health, reason: str) -> HealthReport:
         changed = state is not self.report.state or not self._announced
         self._announced = True
-        self.report = HealthReport(state, reason, changed)
+        texts: tuple[str, ...] = ()
+        if self.devices is not None:
+            snaps = self.devices()
+            texts = tuple(d.text() for d in snaps)
+            failing = [d.text() for d in snaps if d.state.failed]
+            if failing and state is not Health.TRACKING:
+                reason = f"{reason}; {'; '.join(failing)}"
+        self.report = HealthReport(state, reason, changed, texts)
         return self.report

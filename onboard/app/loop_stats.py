@@ -93,12 +93,14 @@ class RunResult:
             f"per frame   median {_ms(m['frame_ms_median'])}, p95 {_ms(m['frame_ms_p95'])}, "
             f"max {_ms(m['frame_ms_max'])} (track + publish)",
             f"health      {m['health']} at the end; {m['health_changes']} changes",
+            *m.get("latency_lines", []),  # onboard/app/latency.py
         ]
         if m.get("ate_rmse_m") is not None:
             lines.append(f"ATE RMSE    {m['ate_rmse_m']:.4f} m over {m['frames_evaluated']} "
                          f"frames (SE(3)-aligned); RPE {_rpe(m)}")
         elif m.get("evaluation_note"):
             lines.append(f"ATE         not computed: {m['evaluation_note']}")
+        lines += m.get("output_notes", [])  # what each output delivered; files not written
         if self.out_dir is not None:
             lines.append(f"output      {self.out_dir}")
         return lines

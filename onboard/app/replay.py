@@ -24,9 +24,15 @@ from tqdm import tqdm
 from onboard import NislamError
 from onboard.app.bench import attitude_error_model, frame_time_stats, pin_one_core
 from onboard.app.config import Config, config_to_toml
-from onboard.core.evaluation import TrajectoryMetrics, evaluate, ground_truth_at
+from onboard.core.evaluation import (
+    RPE_LAGS_FRAMES,
+    TrajectoryMetrics,
+    evaluate,
+    ground_truth_at,
+)
 from onboard.core.messages import AttitudeSource, KeyframeCloud, Tracker
 from onboard.core.trajectory import Trajectory, write_tum
+from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.registry import make_tracker
 from onboard.outputs.plot import plot_trajectory
 from onboard.outputs.ply import write_ply
@@ -54,6 +60,8 @@ class TrackLog:
     t_s: list[float] = field(default_factory=list)
     p_W_m: list[np.ndarray] = field(default_factory=list)
     q_W_C_xyzw: list[np.ndarray] = field(default_factory=list)
+    reference_keyframe_id: list[int] = field(default_factory=list)  # per pose, -1 = unknown
+    var_p_m2: list[np.ndarray] = field(default_factory=list)  # reported position variances
     frame_ms: list[float] = field(default_factory=list)
     lost_reasons: collections.Counter = field(default_factory=collections.Counter)
     keyframes: int = 0
@@ -114,6 +122,7 @@ class ReplayResult:
                 f"(SE(3)-aligned)"
             )
             lines.append(f"RPE ({m['rpe_delta_s']:g} s)   {_rpe_text(m)}")
+            lines += lag_lines(m)
         lines.append(
             f"time        median {_ms(m['frame_ms_median'])}, p95 {_ms(m['frame_ms_p95'])}, "
             f"max {_ms(m['frame_ms_max'])} per frame ({_hz(m['hz'])})"
@@ -163,6 +172,9 @@ def replay(
     metrics = build_metrics(
         seq, cfg, track_log, ev, attitude_label, map_points, plot_written=plot_note is None
     )
+    metrics["sigma1_coverage"] = _coverage(track_log, seq, cfg.replay.gt_max_gap_s)
+    if hasattr(tracker, "stats"):  # the fused tracker: who contributed, who was left out
+        metrics["fusion"] = tracker.stats()
     write_text_atomic(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     written = {name: p for name, p in paths.items() if p.exists()}
     return ReplayResult(metrics, out_dir, written, plot_note)
@@ -195,6 +207,8 @@ def track_sequence(
                 out.t_s.append(result.t_s)
                 out.p_W_m.append(result.p_W_m)
                 out.q_W_C_xyzw.append(result.q_W_C_xyzw)
+                out.reference_keyframe_id.append(result.reference_keyframe_id)
+                out.var_p_m2.append(np.asarray(result.pose_var[:3], dtype=np.float64))
             else:
                 out.lost_reasons[result.lost_reason or "unknown"] += 1
             out.keyframes += int(result.new_keyframe)
@@ -228,7 +242,21 @@ def evaluate_track(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> E
     if missing:
         log.info("%d tracked frames have no ground truth; left out of the evaluation", missing)
     est = est.slice_valid(valid)
-    return Evaluation(est, gt, evaluate(est, gt, rpe_delta_s=RPE_DELTA_S), missing, None)
+    ref_ids = np.asarray(track_log.reference_keyframe_id, dtype=np.int64)
+    # A log filled without key ids (another loop) leaves the key metrics out.
+    ref_ids = ref_ids[valid] if len(ref_ids) == len(valid) else None
+    metrics = evaluate(est, gt, rpe_delta_s=RPE_DELTA_S, reference_keyframe_id=ref_ids)
+    return Evaluation(est, gt, metrics, missing, None)
+
+
+def _coverage(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> float | None:
+    """Share of the position error the reported 1-sigma covers (onboard.fusion.coverage)."""
+    if seq.groundtruth is None or not track_log.t_s:
+        return None
+    est = track_log.trajectory()
+    gt, valid = ground_truth_at(est.t_s, seq.groundtruth, gt_max_gap_s)
+    var = np.asarray(track_log.var_p_m2, dtype=np.float64).reshape(-1, 3)[valid]
+    return sigma1_coverage(est.p_xyz_m[valid], var, gt.p_xyz_m)
 
 
 def build_metrics(
@@ -247,6 +275,9 @@ def build_metrics(
         "ate_rmse_m": None, "ate_mean_m": None, "ate_median_m": None, "ate_max_m": None,
         "rpe_trans_rmse_m": None, "rpe_rot_rmse_deg": None, "rpe_delta_s": RPE_DELTA_S,
         "rpe_pairs": 0, "frames_evaluated": 0,
+        **{f"rpe_lag{k}_m": None for k in RPE_LAGS_FRAMES}, "rpe_rot_lag1_deg": None,
+        "path_length_ratio": None, "keyframe_changes": 0,
+        "keyframe_jump_median_m": None, "keyframe_jump_max_m": None,
     }
     if ev.metrics is not None:
         accuracy.update(ev.metrics.as_dict())
@@ -306,7 +337,8 @@ def _write_plot(ev: Evaluation, path: Path, title: str) -> str | None:
         return "no ground truth to plot against"
     if not plot_trajectory(
         path, m.estimate_aligned_xyz_m, ev.groundtruth.p_xyz_m, m.t_s, m.ate_errors_m,
-        f"{title}: ATE RMSE {m.ate_rmse_m:.3f} m",
+        f"{title}: ATE RMSE {m.ate_rmse_m:.3f} m, per-frame RPE {m.rpe_lag1_m * 1e3:.1f} mm",
+        step_errors_m=m.step_errors_m, key_change=m.key_change,
     ):
         path.unlink(missing_ok=True)
         return "matplotlib is not installed (pip install 'nislam-onboard[plot]')"
@@ -351,6 +383,23 @@ def _rpe_text(m: dict[str, Any]) -> str:
         return "n/a (no frame pair spans the delta)"
     return (f"{m['rpe_trans_rmse_m']:.4f} m, {m['rpe_rot_rmse_deg']:.2f} deg "
             f"({m['rpe_pairs']} pairs)")
+
+
+def lag_lines(m: dict[str, Any]) -> list[str]:
+    """The frame-lag RPE, path length ratio and key-change jumps of a metrics dict."""
+    def mm(v: float | None) -> str:
+        return "n/a" if v is None else f"{v * 1e3:.1f}"
+
+    lags = ", ".join(f"{k} {mm(m.get(f'rpe_lag{k}_m'))}" for k in RPE_LAGS_FRAMES)
+    rot = m.get("rpe_rot_lag1_deg")
+    ratio = m.get("path_length_ratio")
+    return [
+        f"RPE frames  {lags} mm (lag 1, 3, 10, 30 frames); "
+        f"rotation lag 1 {'n/a' if rot is None else f'{rot:.3f}'} deg",
+        f"path ratio  {'n/a' if ratio is None else f'{ratio:.2f}'} (estimated / true length)",
+        f"key changes {m.get('keyframe_changes', 0)}, error jump median "
+        f"{mm(m.get('keyframe_jump_median_m'))} mm, max {mm(m.get('keyframe_jump_max_m'))} mm",
+    ]
 
 
 def _skipped_text(skipped: dict[str, int]) -> str:

@@ -35,9 +35,18 @@ import numpy as np
 from onboard.app.bench import pin_one_core
 from onboard.app.config import Config, config_to_toml
 from onboard.app.health import HealthMonitor, HealthThresholds
-from onboard.app.loop_stats import LoopStats, RunResult, jsonable, stats_line, write_run_json
+from onboard.app.loop_stats import (
+    RUN_FILE,
+    LoopStats,
+    RunResult,
+    jsonable,
+    stats_line,
+    write_run_json,
+)
+from onboard.app.latency import LATENCY_FILE, LoopTiming, attach_timing
 from onboard.app.replay import (
     CONFIG_FILE,
+    GT_AT_FRAMES_FILE,
     METRICS_FILE,
     TRAJECTORY_FILE,
     TrackLog,
@@ -45,15 +54,19 @@ from onboard.app.replay import (
     write_text_atomic,
     write_trajectories,
 )
+from onboard.app.delivery import DeliveryWatch, delivery_lines
+from onboard.app.run_files import FileWrites, LiveTrajectory
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import Health, HealthReport, Tracker, TrackResult
+from onboard.core.pose_gate import PoseGate
 from onboard.core.trajectory import write_tum
 from onboard.fusion.registry import make_tracker
 from onboard.fusion.switching import SwitchingTracker
 from onboard.nislam import kernels
 from onboard.outputs.group import Output, make_outputs
+from onboard.outputs.wake import Wake, defer_wakeups
 
 log = logging.getLogger(__name__)
 
@@ -98,27 +111,49 @@ class Service:
         # hardware without --out (or a looped soak) keeps nothing that grows.
         keep = sources.sequence is not None or (out_dir is not None and not sources.looped)
         self.track_log: TrackLog | None = TrackLog() if keep else None
+        # ... and appended to trajectory.tum as the run goes (a full disk or a
+        # kill then loses the last second, not the run: onboard.app.run_files)
+        self.live = LiveTrajectory(out_dir / TRAJECTORY_FILE) if keep and out_dir else None
+        self.writes = FileWrites()
+        self.delivery = DeliveryWatch()  # "nobody may be receiving", told once
+        self._outputs: Output | None = None
         self.tracker: SwitchingTracker | None = None
         self.health = HealthMonitor(HealthThresholds(
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
-            self.sc.start_grace_s, self.sc.recover_s), time.monotonic())
+            self.sc.start_grace_s, self.sc.recover_s), time.monotonic(), sources.devices)
         self.ready = False
+        self.gate = PoseGate()  # no pose the motion model cannot explain goes out trusted
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
         self._output_stats: dict[str, dict[str, Any]] = {}  # each output's counters at the end
+        self._wakes: list[Wake] = []
+        # Per-frame latency and stage times (onboard/app/latency.py); latency.csv with --out.
+        self.timing = LoopTiming(sources.host_time_s,
+                                 None if out_dir is None else out_dir / LATENCY_FILE)
 
     def run(self) -> RunResult:
         pin_one_core()
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)
+        attach_timing(outputs, self.timing, t_start)
+        self._outputs = outputs
+        drivers = self.sources.devices  # + the outputs' links (the zenoh router)
+        self.health.devices = lambda: [*(drivers() if drivers else []), *outputs.device_states()]
         stop_times: dict[str, float] = {}
-        # Announce "starting" before anything can block the loop, and compile
-        # the tracker's kernels (or load them from numba's cache) before the
-        # sensors run: the first frames then meet a ready tracker.
+        # Announce "starting" before anything can block the loop; start the
+        # sensors, then compile the tracker's kernels (or load them from
+        # numba's cache) while they come up: a missing device is told within
+        # a second or two of start, and frames that arrive during the warm-up
+        # are only replaced in the newest-frame slot.
         self._report(outputs, self.health.on_idle(time.monotonic()))
-        kernels.warm_up()
+        # From here the outputs' threads are woken once a turn, when the loop
+        # is done with its frame (onboard/outputs/wake.py: p95 12 ms saved).
+        self._wakes = defer_wakeups(outputs)
         self.sources.start()
+        kernels.warm_up()
+        if self.live is not None:
+            self.live.open()
         try:
             self.stats.period_start_s = t_start
             self._loop(outputs, t_start)
@@ -142,6 +177,9 @@ class Service:
             if deadline is not None and now >= deadline:
                 break
             self.stats.loop_turns += 1
+            for wake in self._wakes:  # what the last turn handed to the outputs
+                wake.flush()
+            self.timing.tick(now)
             self.notifier.watchdog()
             if self.tracker is None and not self._make_tracker(poll):
                 self._idle(outputs, now)
@@ -176,16 +214,29 @@ class Service:
     def _frame(self, outputs: Output, frame: Any) -> None:
         tracker = self.tracker
         assert tracker is not None
+        timing = self.timing
+        timing.frame_start(frame.t_s)
         self._wait_for_attitude(frame.t_s)
+        timing.lap()
         t0 = time.perf_counter()
-        result = tracker.track(frame, self.sources.attitude)
-        outputs.publish(result)
+        result = self.gate.check(tracker.track(frame, self.sources.attitude))
+        timing.lap()
+        withheld = self.gate.withheld  # a suspect step being checked: no pose, no "lost"
+        if withheld:
+            for kf in result.finished_keyframes:  # the map still gets its key frames
+                outputs.publish_keyframe(kf)
+        else:
+            outputs.publish(result)
+        timing.lap()
         ms = (time.perf_counter() - t0) * 1e3
         now = time.monotonic()
-        report = self.health.on_frame(
+        report = self.health.on_idle(now) if withheld else self.health.on_frame(
             now, result, tracker.fallback.name if tracker.fallback is not None else None)
         self._report(outputs, report)
         self._log_result(result, ms)
+        timing.lap()
+        timing.frame_end(result.trusted and result.p_W_m is not None and not withheld,
+                         report.state is Health.TRACKING)
         if not self.ready:
             self.ready = True
             self.notifier.ready(f"tracking with {tracker.name}: first frame in")
@@ -237,9 +288,13 @@ class Service:
             s.lost_reasons[result.lost_reason or "unknown"] += 1
         tl = self.track_log
         if tl is not None and trusted:
+            q = result.q_W_C_xyzw
             tl.t_s.append(result.t_s)
             tl.p_W_m.append(result.p_W_m)
-            tl.q_W_C_xyzw.append(result.q_W_C_xyzw)
+            tl.q_W_C_xyzw.append(q)
+            if self.live is not None:
+                self.live.append(result.t_s, result.p_W_m, q)
+            tl.reference_keyframe_id.append(result.reference_keyframe_id)
 
     def _maybe_stats(self, now: float) -> None:
         s = self.stats
@@ -262,13 +317,24 @@ class Service:
             "attitude_lead_ms_min": s.period_att_lead_ms,
         }
         s.periods.append(period)
+        if self._outputs is not None:
+            self.delivery.check(self._outputs, now)
         line = stats_line(period, self.tracker)
+        if self.health.report.devices:  # each driver's state (drivers/device_state.py)
+            line += "  " + ", ".join(self.health.report.devices)
         self.emit(line)
         self.notifier.status(line)
         s.period_ms = []
         s.period_att_lead_ms = float("inf")
         s.period_frames = 0
         s.period_start_s = now
+
+    def _frames_offered(self) -> int:
+        """Frames the source had for us: into the camera's slot, or skipped
+        by a replay that could not decode them in time."""
+        slot = getattr(self.sources.camera, "slot", None)
+        put = self.stats.frames if slot is None else int(slot.stats.put)
+        return put + int(getattr(self.sources.camera, "late", 0))
 
     def _dropped(self) -> int:
         slot = getattr(self.sources.camera, "slot", None)
@@ -300,6 +366,7 @@ class Service:
             "keyframes": s.keyframes,
             "reset_counter": s.resets,
             "tracker_switches": 0 if tr is None else tr.switches,
+            "pose_gate": self.gate.stats.as_dict(),
             "lost_reasons": dict(s.lost_reasons),
             "health": self.health.report.state.value,
             "health_changes": s.health_changes,
@@ -308,8 +375,12 @@ class Service:
             "periods": list(s.periods),
             **s.frame_ms.stats(),
         }
+        if tr is not None and hasattr(tr.primary, "stats"):  # the fused tracker
+            metrics["fusion"] = tr.primary.stats()
         if self.sources.source_stats is not None:
             metrics["source_stats"] = self.sources.source_stats()
+        self.timing.finish()
+        metrics["latency_lines"] = self.timing.summary_lines(self._output_stats)
         if self.sources.host_mapping is not None:
             # The MAVLink feed's time_usec is on the host's monotonic clock; the
             # trajectories keep the recording's stamps: how one maps onto the other.
@@ -317,29 +388,47 @@ class Service:
         seq = self.sources.sequence
         if seq is not None:
             metrics["skipped"] = seq.skipped.as_dict()  # what the reader left out, by kind
+        if self.live is not None:
+            self.live.close()
+        out, attempt = self.out_dir, self.writes.attempt
         if seq is not None and self.track_log is not None and s.frames:
             ev = evaluate_track(self.track_log, seq, self.cfg.replay.gt_max_gap_s)
             metrics["evaluation_note"] = ev.note
             if ev.metrics is not None:
                 metrics.update(ev.metrics.as_dict())
-            if self.out_dir is not None:
-                self.out_dir.mkdir(parents=True, exist_ok=True)
-                write_trajectories(ev, self.out_dir)
-        elif self.out_dir is not None and self.track_log is not None:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            est = self.track_log.trajectory()
-            write_tum(self.out_dir / TRAJECTORY_FILE, est.t_s, est.p_xyz_m, est.q_xyzw)
-        if self.out_dir is not None:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            write_text_atomic(self.out_dir / CONFIG_FILE, config_to_toml(self.cfg))
-            write_text_atomic(self.out_dir / METRICS_FILE,
-                              json.dumps(jsonable(metrics), indent=2, allow_nan=False) + "\n")
+            if out is not None:
+                with attempt(out / TRAJECTORY_FILE, out / GT_AT_FRAMES_FILE):
+                    out.mkdir(parents=True, exist_ok=True)
+                    write_trajectories(ev, out)
+        elif out is not None and self.track_log is not None:
+            with attempt(out / TRAJECTORY_FILE):
+                out.mkdir(parents=True, exist_ok=True)
+                est = self.track_log.trajectory()
+                write_tum(out / TRAJECTORY_FILE, est.t_s, est.p_xyz_m, est.q_xyzw)
+        metrics["output_notes"] = delivery_lines(self._output_stats)
+        if out is not None:
+            with attempt(out / CONFIG_FILE, out / METRICS_FILE):
+                out.mkdir(parents=True, exist_ok=True)
+                write_text_atomic(out / CONFIG_FILE, config_to_toml(self.cfg))
+                kept = {k: v for k, v in metrics.items() if k != "latency_lines"}
+                write_text_atomic(out / METRICS_FILE,
+                                  json.dumps(jsonable(kept), indent=2, allow_nan=False) + "\n")
             zs = self._output_stats.get("zenoh")
-            write_run_json(self.out_dir, {
-                "keyframes_published": None if zs is None else zs["keyframes_published"],
-                "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
-                "outputs": self._output_stats,
-            })
+            with attempt(out / RUN_FILE):
+                write_run_json(out, {
+                    "keyframes_published": None if zs is None else zs["keyframes_published"],
+                    "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
+                    **self.timing.run_fields(self._frames_offered(), s.resets, self._output_stats),
+                    "outputs": self._output_stats,
+                })
+        notes = metrics["output_notes"]
+        live_failed = self.live is not None and self.live.failed
+        if live_failed:
+            notes.append(f"recording stopped: {self.live.failed}")
+        if out is not None:  # trajectory.tum's failure was told when it happened
+            line = self.writes.report(out, skip=(TRAJECTORY_FILE,) if live_failed else ())
+            if line:
+                notes.append(f"recording: {line}")
         return RunResult(metrics, self.out_dir)
 
 

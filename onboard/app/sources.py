@@ -36,6 +36,9 @@ class Sources:
     host_time_s: Callable[[float], float] | None = None
     host_mapping: Callable[[], dict[str, float] | None] | None = None  # for metrics.json
     source_stats: Callable[[], dict[str, Any]] | None = None  # the source's own, for metrics.json
+    # Each driver's state (drivers.device_state.DeviceSnapshot), for the health
+    # line, the zenoh status and systemd; None for replays.
+    devices: Callable[[], list[Any]] | None = None
 
     def start(self) -> None:
         self.runner.start()
@@ -53,7 +56,7 @@ def hardware_sources(cfg: Config, **make_kwargs: Any) -> Sources:
     hw = make_hardware(cfg, camera=True, **make_kwargs)
     assert hw.camera is not None
     return Sources("OAK-D", hw.camera, hw.buffer, hw, link=hw.link,
-                   attitude_label=hw.attitude_label)
+                   attitude_label=hw.attitude_label, devices=hw.device_states)
 
 
 def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
@@ -128,7 +131,9 @@ def follow_sources(cfg: Config, name: str) -> Sources:
     from sim_replay.follow_state import STATE_TYPES
 
     sf, m = cfg.sim_follow, cfg.mavlink
-    buffer = make_attitude_buffer(cfg)
+    # The simulated AHRS sends samples missed in a stall late, by design
+    # (sim_replay.follow CATCH_UP_S): no time-jump check on its stamps.
+    buffer = make_attitude_buffer(cfg, check_stamps=False)
     fol = open_follow(
         name, R_B_C=mount_rotation(m.mount, m.mount_q_B_C_xyzw), q_B_C_xyzw=camera_mount_q(cfg),
         sink=buffer.push, width=sf.width, height=sf.height, camera_hz=sf.camera_hz,
@@ -150,4 +155,4 @@ def follow_sources(cfg: Config, name: str) -> Sources:
     threads += [fol.ahrs, fol.camera]
     return Sources(fol.label, fol.camera, buffer, ThreadGroup(threads), link=link,
                    sequence=fol.truth, attitude_label=f"simulated AHRS ({sf.ahrs_profile})",
-                   source_stats=fol.stats)
+                   source_stats=fol.stats, devices=lambda: [link.device_state.snapshot()])

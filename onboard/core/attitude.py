@@ -15,16 +15,30 @@ AHRS went silent lies beyond the newest sample and has none.
 All stamps are capture times on one monotonic clock in nanoseconds
 (`time.monotonic_ns` live; a replay clock on the recording's time base in
 replay). `rotation_at` takes seconds on the same clock, as RgbdFrame.t_s.
+
+Live (`now_ns` given), a sample stamped more than `jump_s` away from that
+clock at its push is a time jump of the AHRS's stamps (a device clock or its
+mapping gone wrong while the camera's stamps stay right): it is dropped and
+counted, never stored. Stored, a jumped-ahead stamp would open a gap no frame
+gets an attitude from, and once frames caught up with it, hand them the
+attitude of seconds before; a jumped-back stamp would, after the
+out-of-order rejections, do the same for ever. Dropped, frames simply get no
+attitude until the stamps are sane again (the tracker then sends nothing
+trusted), and `stamps` (onboard/core/device_state.py) tells it in one line
+and its recovery in another. Within `jump_s` a stamp is not told from
+latency and jitter: that bounds the attitude error a jump can cause.
 """
 
 from __future__ import annotations
 
 import bisect
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core.device_state import DeviceState, State
 from onboard.core.rotations import (
     Quat,
     quat_conj,
@@ -53,6 +67,7 @@ class BufferStats:
     pushed: int = 0
     rejected_out_of_order: int = 0  # stamp not after the newest sample
     rejected_invalid: int = 0  # non-finite or zero-norm quaternion
+    rejected_time_jump: int = 0  # stamped more than jump_s from the clock (live)
 
 
 # --------------------------------------------------------------------------- quaternions
@@ -83,6 +98,9 @@ class AttitudeBuffer:
         R_B_C: np.ndarray | None = None,
         capacity: int = 1024,
         max_gap_s: float = 0.1,
+        now_ns: Callable[[], int] | None = None,
+        jump_s: float = 2.0,
+        label: str = "AHRS",
     ) -> None:
         if capacity < 2:
             raise ValueError("attitude buffer capacity must be >= 2")
@@ -94,12 +112,25 @@ class AttitudeBuffer:
         self._samples: list[AttitudeSample] = []
         self._stats = BufferStats()
         self._new = threading.Condition(self._lock)
+        self.now_ns = now_ns  # the stamps' clock, live; None: no time-jump check (replay)
+        self.jump_ns = int(jump_s * 1e9)
+        self.stamps = DeviceState(f"{label} stamps", "")
 
     # -- writing (driver threads)
 
     def push(self, sample: AttitudeSample) -> bool:
         """Store a sample; False (and counted) if it is not newer than the
         newest one or its quaternion is not a rotation."""
+        if self.now_ns is not None:
+            skew_ns = sample.t_ns - self.now_ns()
+            if abs(skew_ns) > self.jump_ns:
+                with self._lock:
+                    self._stats = _bump(self._stats, rejected_time_jump=1)
+                self.stamps.set(State.BAD_DATA, (
+                    f"time jump: stamped {skew_ns * 1e-9:+.1f} s from the clock; its samples "
+                    "are dropped, frames get no attitude meanwhile"))
+                return False
+            self.stamps.set(State.STREAMING)
         q = quat_normalized(sample.q_W_B_xyzw)
         with self._lock:
             if q is None:

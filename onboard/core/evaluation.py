@@ -1,5 +1,6 @@
 """Trajectory accuracy against ground truth: ATE after SE(3) alignment, RPE over
-a time delta, and a diagnostic plot.
+a time delta and over 1/3/10/30 frames, path length ratio, and the error jump at
+key-frame changes.
 
 Numbers are meant to be identical to `evo` (checked in tests/test_evaluation.py):
 - ATE == `evo_ape tum GT EST -a` (translation part, Umeyama without scale).
@@ -8,6 +9,9 @@ Numbers are meant to be identical to `evo` (checked in tests/test_evaluation.py)
   uniformly sampled so that K frames span `rpe_delta_s`. evo has no time-based
   delta unit (its `--delta_unit` accepts only f/d/r/m), so the time pairing here
   is our own rule, chosen to reduce to evo's frame pairing on uniform data.
+- `rpe_lagK_m` == `evo_rpe tum GT EST --delta K --delta_unit f --pose_relation
+  trans_part --all_pairs` (RMSE) over the evaluated rows, whatever their
+  spacing in time; `rpe_rot_lag1_deg` the same with `angle_deg` and K = 1.
 """
 
 from __future__ import annotations
@@ -29,6 +33,10 @@ _PAIR_TIME_TOL_S = 1e-5
 # A pair spanning much more than delta straddles a hole in the data (tracking lost
 # or no ground truth); its drift would be reported as "per delta", so drop it.
 _RPE_MAX_SPAN_FACTOR = 1.5
+
+# Frame lags of the short-range RPE: 1 frame is the jitter the flight
+# controller's velocity estimate sees, 30 (1 s at 30 Hz) the drift.
+RPE_LAGS_FRAMES = (1, 3, 10, 30)
 
 
 def umeyama_se3(src_xyz: np.ndarray, dst_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,6 +94,20 @@ class TrajectoryMetrics:
     t_gt_est_m: np.ndarray = field(repr=False)
     rpe_trans_errors_m: np.ndarray = field(repr=False)
     rpe_rot_errors_deg: np.ndarray = field(repr=False)
+    # Frame-lag RPE (see lag_metrics); NaN when the trajectory is shorter.
+    rpe_lag1_m: float = float("nan")
+    rpe_lag3_m: float = float("nan")
+    rpe_lag10_m: float = float("nan")
+    rpe_lag30_m: float = float("nan")
+    rpe_rot_lag1_deg: float = float("nan")
+    path_length_ratio: float = float("nan")
+    keyframe_changes: int = 0
+    keyframe_jump_median_m: float = float("nan")
+    keyframe_jump_max_m: float = float("nan")
+    # Per row i >= 1: translation error of the motion from row i-1 to row i
+    # (the lag-1 RPE, NaN at row 0), and whether row i changed key.
+    step_errors_m: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    key_change: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=bool))
 
     def as_dict(self) -> dict[str, float | int | None]:
         """Scalar metrics only, JSON-able (non-finite values become None)."""
@@ -180,15 +202,77 @@ def rmse(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
 
+def rpe_pairs_by_frames(n: int, lag: int, all_pairs: bool = True) -> np.ndarray:
+    """Index pairs (i, i + lag), (K, 2) int: every i with `all_pairs`, else
+    i = 0, lag, 2 lag, ... (evo's `filter_pairs_by_index`)."""
+    if lag < 1:
+        raise ValueError("lag must be >= 1 frame")
+    starts = np.arange(n - lag) if all_pairs else np.arange(0, n - lag, lag)
+    return np.stack([starts, starts + lag], axis=1).astype(np.int64)
+
+
+def path_length_m(p_xyz_m: np.ndarray) -> float:
+    p = np.asarray(p_xyz_m, dtype=np.float64).reshape(-1, 3)
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def lag_metrics(
+    estimate: Trajectory,
+    groundtruth_at_estimate: Trajectory,
+    reference_keyframe_id: np.ndarray | None = None,
+) -> dict[str, object]:
+    """Short-range accuracy of rows that share stamps (no alignment needed).
+
+    - `rpe_lagK_m`: RMSE of the translation error of the relative motion over
+      K rows (all pairs), K in RPE_LAGS_FRAMES; `rpe_rot_lag1_deg` the rotation.
+    - `path_length_ratio`: length of the estimated path over the true one,
+      summed over consecutive rows; frame-to-frame jitter inflates it.
+    - key-frame jumps: where `reference_keyframe_id` (the key each row's pose
+      was measured against; -1 = unknown) changes between consecutive rows,
+      the lag-1 error across the change (`keyframe_jump_median_m`, `_max_m`).
+    """
+    n = len(estimate)
+    out: dict[str, object] = {}
+    step = np.full(n, np.nan)
+    for lag in RPE_LAGS_FRAMES:
+        trans_m, rot_deg = relative_pose_errors(
+            estimate, groundtruth_at_estimate, rpe_pairs_by_frames(n, lag)
+        )
+        out[f"rpe_lag{lag}_m"] = rmse(trans_m)
+        if lag == 1:
+            out["rpe_rot_lag1_deg"] = rmse(rot_deg)
+            step[1:] = trans_m
+    true_len_m = path_length_m(groundtruth_at_estimate.p_xyz_m)
+    out["path_length_ratio"] = (
+        path_length_m(estimate.p_xyz_m) / true_len_m if true_len_m > 0 else float("nan")
+    )
+    change = np.zeros(n, dtype=bool)
+    if reference_keyframe_id is not None:
+        ids = np.asarray(reference_keyframe_id, dtype=np.int64)
+        if len(ids) != n:
+            raise ValueError(f"reference_keyframe_id has {len(ids)} rows, estimate {n}")
+        change[1:] = (ids[1:] != ids[:-1]) & (ids[1:] >= 0) & (ids[:-1] >= 0)
+    jumps = step[change]
+    out["keyframe_changes"] = int(change.sum())
+    out["keyframe_jump_median_m"] = float(np.median(jumps)) if len(jumps) else float("nan")
+    out["keyframe_jump_max_m"] = float(np.max(jumps)) if len(jumps) else float("nan")
+    out["step_errors_m"] = step
+    out["key_change"] = change
+    return out
+
+
 def evaluate(
     estimate: Trajectory,
     groundtruth_at_estimate: Trajectory,
     rpe_delta_s: float = 1.0,
     rpe_all_pairs: bool = True,
+    reference_keyframe_id: np.ndarray | None = None,
 ) -> TrajectoryMetrics:
-    """ATE (after SE(3) Umeyama alignment over all frames) and RPE over `rpe_delta_s`.
+    """ATE (after SE(3) Umeyama alignment over all frames), RPE over
+    `rpe_delta_s` and the frame-lag metrics of `lag_metrics`.
 
-    Both trajectories must share timestamps row for row (see `ground_truth_at`).
+    Both trajectories must share timestamps row for row (see `ground_truth_at`);
+    `reference_keyframe_id`, when given, too.
     """
     n = len(estimate)
     if n != len(groundtruth_at_estimate):
@@ -228,6 +312,7 @@ def evaluate(
         t_gt_est_m=t,
         rpe_trans_errors_m=rpe_trans_m,
         rpe_rot_errors_deg=rpe_rot_deg,
+        **lag_metrics(estimate, groundtruth_at_estimate, reference_keyframe_id),  # type: ignore[arg-type]
     )
 
 

@@ -20,12 +20,16 @@ class RgbdFrame:
     """One colour + registered depth pair, already undistorted.
 
     `bgr`: (H, W, 3) uint8 in OpenCV channel order; `depth_m`: (H, W) float32
-    metres with 0 = no measurement; `t_s`: capture time on the source's clock.
+    metres with 0 = no measurement; `t_s`: capture time on the source's clock
+    (of the colour image when `depth_t_s` gives the depth's own).
     """
 
     t_s: float
     bgr: np.ndarray
     depth_m: np.ndarray
+    # When the depth image was captured, if not with the colour (a Kinect
+    # pairs them up to 20 ms apart); None = at `t_s`.
+    depth_t_s: float | None = None
 
 
 class AttitudeSource(Protocol):
@@ -103,6 +107,13 @@ class TrackResult:
     matched_cells: int
     finished_keyframes: tuple[KeyframeCloud, ...] = ()
     keyframe_reused: bool = False  # the frame switched to a key kept from before (not a new one)
+    # The key this frame's pose was measured against (-1: not known, or no
+    # single key): differs from `keyframe_id` on the frame that makes a new key.
+    reference_keyframe_id: int = -1
+    # The fused tracker (onboard.fusion.fused): the trackers whose motion this
+    # frame's pose used, and (tracker, why) for each one left out.
+    contributors: tuple[str, ...] = ()
+    left_out: tuple[tuple[str, str], ...] = ()
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:
@@ -135,3 +146,4 @@ class HealthReport:
     state: Health
     reason: str  # one line: why this state (shown in STATUSTEXT and zenoh status)
     changed: bool = False  # differs from the previous report's state
+    devices: tuple[str, ...] = ()  # each driver's state ("OAK-D streaming", "myAHRS+ no device (...)")

@@ -4,7 +4,7 @@
 Every tracker is a pure core (arrays in, a result out) behind the same
 `onboard.core.messages.Tracker` protocol, so replay, bench and the onboard loop
 never ask which one they hold. The factory reads each tracker's parameters from
-its own section of the configuration (`[nislam]`, `[fastorb]`); it takes any
+its own section of the configuration (`[nislam]`, `[fastorb]`, `[fusion]`); it takes any
 object carrying those sections, so this module needs nothing of the
 application's configuration (which reads `TRACKER_NAMES` from here).
 """
@@ -18,9 +18,12 @@ from onboard import NislamError
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import Tracker
 from onboard.fastorb.params import FastOrbParams
-from onboard.fastorb.tracker import FastOrbTracker
+from onboard.fusion.params import FusionParams
 from onboard.nislam.params import NislamParams
-from onboard.nislam.tracker import NislamTracker
+
+# The trackers themselves (numba kernels, cv2) load in their builders: the
+# configuration reads TRACKER_NAMES from here, and `nislam --help` or a
+# config check should not pay for compiling machinery it never runs.
 
 
 class TrackerSections(Protocol):
@@ -34,16 +37,29 @@ class TrackerSections(Protocol):
 
 
 def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+    from onboard.nislam.tracker import NislamTracker
+
     return NislamTracker(intrinsics, cfg.nislam)
 
 
 def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+    from onboard.fastorb.tracker import FastOrbTracker
+
     return FastOrbTracker(intrinsics, cfg.fastorb)
+
+
+def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+    from onboard.fusion.fused import FusedTracker
+
+    # NI-SLAM first: its key-frame clouds make the map (onboard.fusion.fused).
+    params = getattr(cfg, "fusion", None) or FusionParams()
+    return FusedTracker([_make_nislam(intrinsics, cfg), _make_fastorb(intrinsics, cfg)], params)
 
 
 _REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
     "nislam": _make_nislam,
     "fastorb": _make_fastorb,
+    "fused": _make_fused,
 }
 TRACKER_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 

@@ -27,7 +27,8 @@ class DepthFit:
 
 
 def depth_translation(
-    key: Key, img: AxonometricImage, du: int, dv: int, p: NislamParams
+    key: Key, img: AxonometricImage, du: int, dv: int, p: NislamParams,
+    frac: tuple[float, float] = (0.0, 0.0),
 ) -> DepthFit | None:
     """Eq. 18 with robust gating, plus the residual tilt.
 
@@ -38,14 +39,25 @@ def depth_translation(
     Delta = -t_z - theta_x y + theta_y x, fitted in closed form from the
     sums of onboard.nislam.kernels.depth_difference_sums (every other row and
     column: a quarter of the cells fixes three parameters just as well).
+
+    `frac`: the peak's sub-cell part beyond (du, dv). With
+    `depth_sigma_floor_m` > 0 the fit is weighted by the inverse variance of
+    each difference and the differences are carried to the sub-cell shift
+    (kernels.depth_difference_sums): the paper's plain mean lets slanted
+    surfaces and depth edges, whose differences move with the rounding of the
+    shift, set t_z.
     """
     s = key.img.res_m
     sums = kern.depth_difference_sums(
         key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
-        p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16,
+        p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
+        p.depth_sigma_rel, p.depth_sigma_floor_m,
     )
-    n = float(sums[kern.N])
-    if n < p.min_matched_cells:
+    if float(sums[kern.N]) < p.min_matched_cells:
+        return None
+    n_cells = int(sums[kern.N])
+    n = float(sums[kern.SUM_W])  # the weights' sum: the count when unweighted
+    if not n > 0.0:
         return None
     sum_d = float(sums[kern.SUM_D])
     z_mean = float(sums[kern.SUM_ZKEY]) / n
@@ -54,7 +66,7 @@ def depth_translation(
     theta = np.zeros(3)
 
     def fit(tz: float) -> DepthFit:
-        return DepthFit(float(tz), theta, z_mean, int(n), var_z)
+        return DepthFit(float(tz), theta, z_mean, n_cells, var_z)
 
     if not p.depth_tilt_fit:
         return fit(-sum_d / n)

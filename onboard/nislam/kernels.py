@@ -139,8 +139,44 @@ def block_means(
     return g, z, cover
 
 
-# Index of each sum in depth_difference_sums' result.
-N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY = range(11)
+@njit(cache=True, nogil=True)
+def warped_gray(bgr: np.ndarray, stride: int, hmat: np.ndarray) -> np.ndarray:
+    """8-bit gray of every stride-th pixel taken from the colour image at the
+    homography hmat (3 x 3, pixel to pixel, full resolution) of that pixel,
+    bilinear, borders replicated; gray as in strided_depth_gray (to within
+    the rounding of the interpolation)."""
+    hh, ww = bgr.shape[0], bgr.shape[1]
+    rows = (hh + stride - 1) // stride
+    cols = (ww + stride - 1) // stride
+    out = np.empty((rows, cols), np.uint8)
+    for i in range(rows):
+        v = float(i * stride)
+        for j in range(cols):
+            u = float(j * stride)
+            wz = hmat[2, 0] * u + hmat[2, 1] * v + hmat[2, 2]
+            x = (hmat[0, 0] * u + hmat[0, 1] * v + hmat[0, 2]) / wz
+            y = (hmat[1, 0] * u + hmat[1, 1] * v + hmat[1, 2]) / wz
+            x = min(max(x, 0.0), ww - 1.0)
+            y = min(max(y, 0.0), hh - 1.0)
+            x0 = min(int(x), ww - 2)
+            y0 = min(int(y), hh - 2)
+            fx = x - x0
+            fy = y - y0
+            acc = 0.0
+            for dy in range(2):
+                for dx in range(2):
+                    wgt = (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy)
+                    b = bgr[y0 + dy, x0 + dx, 0]
+                    g = bgr[y0 + dy, x0 + dx, 1]
+                    r = bgr[y0 + dy, x0 + dx, 2]
+                    acc += wgt * (0.114 * b + 0.587 * g + 0.299 * r)
+            out[i, j] = np.uint8(min(acc + 0.5, 255.0))
+    return out
+
+
+# Index of each sum in depth_difference_sums' result; with weights, every sum
+# but N (the count of cells) is weighted and SUM_W is the sum of the weights.
+N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY, SUM_W = range(12)
 
 
 @njit(cache=True, nogil=True)
@@ -157,9 +193,13 @@ def depth_difference_sums(
     gate_depth_m: float,
     res_m: float,
     min_sample: int,
+    frac_u: float = 0.0,
+    frac_v: float = 0.0,
+    sigma_rel: float = 0.0,
+    sigma_floor_m: float = 0.0,
 ) -> np.ndarray:
-    """Weighted sums over the well-matched cells of Eq. 18, every other row
-    and column of the overlap (current cell p + (du, dv) against key cell p).
+    """Sums over the well-matched cells of Eq. 18, every other row and column
+    of the overlap (current cell p + (du, dv) against key cell p).
 
     Delta = cur_depth - key_depth on cells filled in both whose gray differs
     by less than gate_gray; the depth gate keeps |Delta - median| <
@@ -167,11 +207,26 @@ def depth_difference_sums(
     to centre the gate). x, y are the key cell centres in metres from the
     optical axis. Returns the sums indexed by N, SUM_D, ... (all 0 when fewer
     than min_sample cells reach the median).
+
+    With sigma_floor_m > 0 the sums are weighted by the inverse variance of
+    Delta, and Delta is carried to the sub-cell shift (frac_u, frac_v) along
+    the key's depth gradient g (m per cell, central differences): on a
+    surface seen at a slant, a shift rounded to whole cells and the random
+    place of each cell's point inside it move Delta by g times the
+    misregistration. Delta += frac . g removes the first; the variance
+    (sigma_rel z^2, at least sigma_floor_m)^2 + |g|^2 / 6 (a uniform position
+    inside the cell, in both images: 2 x 1/12 cell^2 per axis) weighs the
+    second, so slanted surfaces and depth edges count little. Cells whose
+    four key neighbours are not all filled (hole and frame borders) are left
+    out in that mode.
     """
-    out = np.zeros(11)
+    out = np.zeros(12)
     h, w = key_depth.shape
+    weighted = sigma_floor_m > 0.0
     ky0, ky1 = max(0, -dv), min(h, h - dv)
     kx0, kx1 = max(0, -du), min(w, w - du)
+    if weighted:
+        ky0, ky1, kx0, kx1 = max(ky0, 1), min(ky1, h - 1), max(kx0, 1), min(kx1, w - 1)
     if ky1 <= ky0 or kx1 <= kx0:
         return out
     sample = np.empty(((ky1 - ky0 + 3) // 4) * ((kx1 - kx0 + 3) // 4), np.float32)
@@ -193,20 +248,32 @@ def depth_difference_sums(
             if not abs(cur_gray[i + dv, j + du] - key_gray[i, j]) < gate_gray:
                 continue
             d = cur_depth[i + dv, j + du] - key_depth[i, j]
+            wt = 1.0
+            if weighted:
+                if not (key_mask[i, j - 1] > 0 and key_mask[i, j + 1] > 0
+                        and key_mask[i - 1, j] > 0 and key_mask[i + 1, j] > 0):
+                    continue
+                gx = 0.5 * (key_depth[i, j + 1] - key_depth[i, j - 1])
+                gy = 0.5 * (key_depth[i + 1, j] - key_depth[i - 1, j])
+                d += frac_u * gx + frac_v * gy
+                z = key_depth[i, j]
+                sz = max(sigma_rel * z * z, sigma_floor_m)
+                wt = 1.0 / (sz * sz + (gx * gx + gy * gy) / 6.0)
             if not abs(d - med) < gate_depth_m:
                 continue
             x = (j - w // 2 + 0.5) * res_m
             out[N] += 1.0
-            out[SUM_D] += d
-            out[SUM_DD] += d * d
-            out[SUM_ZKEY] += key_depth[i, j]
-            out[SUM_X] += x
-            out[SUM_Y] += y
-            out[SUM_XX] += x * x
-            out[SUM_YY] += y * y
-            out[SUM_XY] += x * y
-            out[SUM_DX] += d * x
-            out[SUM_DY] += d * y
+            out[SUM_W] += wt
+            out[SUM_D] += wt * d
+            out[SUM_DD] += wt * d * d
+            out[SUM_ZKEY] += wt * key_depth[i, j]
+            out[SUM_X] += wt * x
+            out[SUM_Y] += wt * y
+            out[SUM_XX] += wt * x * x
+            out[SUM_YY] += wt * y * y
+            out[SUM_XY] += wt * x * y
+            out[SUM_DX] += wt * d * x
+            out[SUM_DY] += wt * d * y
     return out
 
 
@@ -219,7 +286,10 @@ def warm_up() -> None:
     rays.setflags(write=False)  # as projection._rays hands them out
     zbuffer_project(f32, np.zeros((4, 4), np.uint8), rays, np.zeros((3, 4), np.float32), 2, 2, True)
     depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1)
+    depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1, 0.1, 0.1,
+                          0.0015, 0.001)
     strided_depth_gray(np.zeros((4, 4, 3), np.uint8), f32, 2, 0.2, 6.0)
+    warped_gray(np.zeros((4, 4, 3), np.uint8), 2, np.eye(3))
     # Overlap windows are contiguous views when the shift has no column part,
     # strided ones otherwise: both layouts get compiled.
     block_means(f32, f32, f32, 2)

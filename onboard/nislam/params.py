@@ -38,7 +38,15 @@ class NislamParams:
     reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
     reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
     reuse_reset_jump_m: float = 0.05  # a re-use moving the position this much beyond what it may have flown: reset
-    depth_tilt_fit: bool = True  # t_z on the key axis from a plane fit of the depth differences
+    # Eq. 18 weighted by the inverse variance of each depth difference (sensor
+    # noise sigma_rel z^2, at least the floor, plus the slope times the cell
+    # sampling) and carried to the sub-cell peak; floor 0 = the paper's mean.
+    depth_sigma_rel: float = 0.0015  # 1/m: stereo / structured-light class (1.5 mm at 1 m)
+    depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
+    depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
+    # t_z on the key axis from a plane fit of the depth differences: off, its
+    # tilt is noise levered onto t_z (docs/nislam-error-budget.md)
+    depth_tilt_fit: bool = False
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
     calibrate_every_n_frames: int = 4  # residual-rotation fit for the calibration on every n-th frame

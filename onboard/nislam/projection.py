@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 
 from onboard.core.camera import CameraIntrinsics
-from onboard.nislam.kernels import strided_depth_gray, zbuffer_project
+from onboard.nislam.kernels import strided_depth_gray, warped_gray, zbuffer_project
 
 
 @dataclass(frozen=True)
@@ -70,11 +70,22 @@ def make_cloud(
     min_depth_m: float,
     max_depth_m: float,
     stride: int = 1,
+    r_colour_depth: np.ndarray | None = None,
 ) -> Cloud:
     """Organised cloud of an undistorted pinhole frame; depth outside
     (min, max) is invalid. Gray is OpenCV's BGR2GRAY: the authors'
-    0.114 B + 0.587 G + 0.299 R, rounded to 8 bits."""
+    0.114 B + 0.587 G + 0.299 R, rounded to 8 bits.
+
+    `r_colour_depth`: the camera's rotation from the depth image's capture to
+    the colour image's (p_colour = R p_depth). Each depth pixel then takes its
+    gray from where its ray falls in the colour image, K R K^-1 u (a rotation
+    moves every depth alike), so gray and geometry show one instant, the
+    depth's; the camera's translation in those few ms is neglected."""
     depth, gray8 = strided_depth_gray(bgr, depth_m, stride, min_depth_m, max_depth_m)
+    if r_colour_depth is not None:
+        k = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+        hmat = k @ r_colour_depth @ np.linalg.inv(k)
+        gray8 = warped_gray(bgr, stride, hmat)
     return Cloud(depth, bgr[::stride, ::stride], gray8, _rays(intr, stride))
 
 

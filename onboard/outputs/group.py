@@ -101,6 +101,12 @@ class OutputGroup:
                 out[type(o).__name__.removesuffix("Output").lower()] = fn()
         return out
 
+    def device_states(self) -> list[Any]:
+        """The members' link states (onboard/core/device_state.py snapshots):
+        the zenoh output's router, when it connects to one."""
+        states = (getattr(o, "device_state", None) for o in self.outputs)
+        return [s.snapshot() for s in states if s is not None]
+
     def close(self) -> None:
         """Close every member, even when one fails (the first error is raised)."""
         first: BaseException | None = None

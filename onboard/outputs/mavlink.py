@@ -8,14 +8,12 @@ optionally, the EKF origin once at start. Facts behind every field:
 docs/autopilot.md. What the samples hold and when: onboard.outputs.mavlink_feed.
 
 Threads. `publish()` only appends the result to a bounded queue (the oldest
-is dropped when full) and wakes the sender thread, which owns the link:
-it converts, sends, answers TIMESYNC (reading its own link every 2 ms),
-keeps the heartbeat and reopens a link
-that failed every `reconnect_s`, so the tracking loop never waits on a
-socket or a serial port. Errors are counted and logged once per spell.
-When the autopilot link is shared (drivers.fc_link.FcLink, which the
-autopilot attitude source also reads), pass it as `link`: the feed then
-sends through it and gets TIMESYNC requests from its reader thread.
+dropped when full) and wakes the sender thread, which owns the link: it
+converts, sends, answers TIMESYNC (reading its own link every 2 ms) and asks
+its own (mavlink_timesync), keeps the heartbeat and reopens a failed link
+every `reconnect_s`: the loop never waits on a socket or a serial port.
+Errors are counted and logged once per spell. A link shared with the
+autopilot attitude source (drivers.fc_link.FcLink) is passed as `link`.
 
 pymavlink picks MAVLink 1 or 2 when it is first imported, from the
 environment variable MAVLINK20; with MAVLink 1 ODOMETRY does not exist. This
@@ -30,9 +28,8 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -41,9 +38,6 @@ from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult
 from onboard.outputs.mavlink_feed import (
     HEALTH_STATE,
     MAV_AUTOPILOT_INVALID,
-    MAV_ESTIMATOR_TYPE_VIO,
-    MAV_FRAME_BODY_FRD,
-    MAV_FRAME_LOCAL_FRD,
     MAV_TYPE_ONBOARD_CONTROLLER,
     SEVERITY,
     STATUSTEXT_LEN,
@@ -53,14 +47,19 @@ from onboard.outputs.mavlink_feed import (
     VisionSample,
     diag_cov21,
     euler_rpy,
+    odometry_args,
 )
 from onboard.outputs.mavlink_origin import OriginHandshake, ResetCounterStore, state_directory
 from onboard.outputs.mavlink_signing import enable_signing, load_signing_key
+from onboard.outputs.mavlink_stats import MavlinkStats, SharedLink
+from onboard.outputs.mavlink_timesync import PACKET_BYTES, TimesyncClock
 from onboard.outputs.settings import MavlinkConfig
+from onboard.outputs.wake import Wake
 
 log = logging.getLogger(__name__)
 
 RX_POLL_S = 0.002  # how often our own link is read: TIMESYNC answers within ~2 ms
+ANSWER_WAIT_S = 0.02  # the sender reads at once for an answer to our TIMESYNC this long
 
 
 def load_mavutil() -> Any:
@@ -75,49 +74,12 @@ def load_mavutil() -> Any:
     from pymavlink import mavutil
 
     if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
-        raise NislamError(
-            "pymavlink was loaded with MAVLink 1 (MAVLINK20 unset or 0 at its first import); "
-            "ODOMETRY needs MAVLink 2"
-        )
+        raise NislamError("pymavlink was loaded with MAVLink 1 (MAVLINK20 unset or 0 at its "
+                          "first import); ODOMETRY needs MAVLink 2")
     return mavutil
 
 
-# --------------------------------------------------------------------------- pure feed
-
-
 # --------------------------------------------------------------------------- sender
-
-
-@dataclass
-class MavlinkStats:
-    """Counters of the sender thread (read them with `MavlinkOutput.stats()`)."""
-
-    results: int = 0
-    dropped: int = 0  # results dropped from the full queue
-    poses_sent: int = 0
-    not_sent: int = 0  # poses that found the link down
-    heartbeats: int = 0
-    statustexts: int = 0
-    timesync_replies: int = 0
-    link_errors: int = 0
-    link_opens: int = 0
-    link_up: bool = False
-    signature_rejects: int = 0  # received messages unsigned or wrongly signed (signing on)
-    sent_by_type: dict[str, int] = field(default_factory=dict)
-
-
-class SharedLink(Protocol):
-    """A MAVLink connection owned by someone else (drivers.fc_link.FcLink):
-    one link per autopilot, shared with the autopilot attitude source."""
-
-    def send(self, build: Callable[[Any], object]) -> bool:
-        """Run build(mav) under the link's write lock; False when it is down."""
-        ...
-
-    def add_listener(self, callback: Callable[[Any, int], object],
-                     types: Iterable[str] | None = None) -> Callable[[], None]:
-        """callback(msg, t_arrival_ns) for messages of `types`; returns a remover."""
-        ...
 
 
 class MavlinkOutput:
@@ -143,7 +105,7 @@ class MavlinkOutput:
         self._lock = threading.Lock()
         self._stats = MavlinkStats()
         self._stop = threading.Event()
-        self._cond = threading.Condition()  # wake-ups only: held for an instant
+        self._wakeup = Wake()  # never makes the loop wait (onboard/outputs/wake.py)
         self._conn: Any = None
         self._link_dead: str | None = None
         self._next_open = 0.0
@@ -165,6 +127,13 @@ class MavlinkOutput:
         if link is not None:
             self._remove_listener = link.add_listener(
                 self._on_shared_message, ("TIMESYNC", "GPS_GLOBAL_ORIGIN"))
+        # Our TIMESYNC requests; hooks (onboard.app.latency.attach_timing).
+        self.timesync = TimesyncClock()
+        self.on_written: Callable[[int, float], None] | None = None
+        self.on_stage: Callable[[str, float], None] | None = None
+        self._send_started = self._pose_written = 0.0  # time.monotonic() [s]
+        serial = not cfg.connect.startswith(("udp", "tcp"))  # a pose's transmit time:
+        self._transmit_s = PACKET_BYTES[cfg.message] * 10 / cfg.baud if serial else 0.0
         self._thread = threading.Thread(target=self._run, name="mavlink-out", daemon=True)
         self._thread.start()
 
@@ -175,8 +144,7 @@ class MavlinkOutput:
         if len(self._queue) == self._queue.maxlen:
             self._stats.dropped += 1
         self._queue.append(result)
-        with self._cond:
-            self._cond.notify()
+        self._wakeup.set()
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         pass  # the flight controller has no use for the map
@@ -197,7 +165,7 @@ class MavlinkOutput:
         if self._stop.is_set():
             return
         self._stop.set()
-        self._wake()
+        self._wakeup.set_now()
         self._thread.join(timeout_s)
         if self._remove_listener is not None:
             self._remove_listener()
@@ -210,10 +178,22 @@ class MavlinkOutput:
             s = self._stats
             out = {k: getattr(s, k) for k in s.__dataclass_fields__}
             out["sent_by_type"] = dict(s.sent_by_type)
+        out["timesync"] = self.timesync_estimate()
         out["state"] = self.feed.state.name
         out["system_status"] = self._system_status.name
         out["reset_counter"] = self.feed.reset_counter
+        out["shared_link"] = self._shared is not None  # `received` then counts TIMESYNC only
         return out
+
+    def timesync_estimate(self) -> dict[str, Any] | None:
+        """Our TIMESYNC answers' clock offset and round trip [ms], or None."""
+        est = self.timesync.estimate()
+        return None if est is None else est.as_dict()
+
+    def one_way_s(self) -> float | None:
+        """A pose's time on the link (half the least round trip + transmit), or None."""
+        half_rtt = self.timesync.one_way_s()
+        return None if half_rtt is None else half_rtt + self._transmit_s
 
     def __enter__(self) -> MavlinkOutput:
         return self
@@ -223,14 +203,14 @@ class MavlinkOutput:
 
     # ------------------------------------------------------------- the thread
     def _wake(self) -> None:
-        # A condition, not a pipe: notify() makes no system call that would let
-        # the woken thread take the GIL in the middle of the loop's publish().
-        with self._cond:
-            self._cond.notify()
+        self._wakeup.set()  # the loop's calls: deferred to its frame's end in the service
 
-    def _on_shared_message(self, msg: Any, _t_ns: int) -> None:
-        self._rx.append(msg)  # on the link's reader thread: hand over, wake, return
-        self._wake()
+    def wakeups(self) -> tuple[Wake, ...]:
+        return (self._wakeup,)
+
+    def _on_shared_message(self, msg: Any, t_ns: int) -> None:
+        self._rx.append((msg, t_ns))  # on the link's reader thread: hand over, wake, return
+        self._wakeup.set_now()
 
     @property
     def _link_open(self) -> bool:
@@ -270,7 +250,7 @@ class MavlinkOutput:
             with self._lock:
                 self._stats.results += 1
             self._last_result_at = time.monotonic()
-            self._handle(self.feed.update(result))
+            self._handle(self.feed.update(result), result.trusted and result.p_W_m is not None)
         now = time.monotonic()
         last = self._last_result_at
         if last is not None and now - last > self.cfg.stale_s:
@@ -279,6 +259,13 @@ class MavlinkOutput:
                 self._handle(event)
         if now >= self._next_heartbeat:
             self._heartbeat()
+        if self._link_open:
+            ts1 = self.timesync.due(self._clock_ns())
+            if ts1 is not None and self._send("timesync", 0, ts1):
+                with self._lock:
+                    self._stats.timesync_requests += 1
+                if self.timesync.answers:  # a peer that never answers costs no wait
+                    self._await_answer(ts1)
         if self._link_open and self._origin.due(now):
             for name, args in self._origin.messages(now, self._clock_ns() // 1000):
                 self._send(name, *args)
@@ -289,16 +276,18 @@ class MavlinkOutput:
             deadlines.append(self._next_open)
         elif not self._origin.done:
             deadlines.append(self._origin.next_s)
+        next_ts = self.timesync.next_due_ns()
+        if self._link_open and next_ts is not None:
+            deadlines.append(now + (next_ts - self._clock_ns()) / 1e9)
         watching = self.feed.state not in (FeedState.BOOT, FeedState.LOST)
         if watching and self._last_result_at is not None:
             deadlines.append(self._last_result_at + self.cfg.stale_s + 1e-3)
         timeout = min(0.5, max(0.0, min(deadlines) - now))
         if self._conn is not None:
             timeout = min(timeout, RX_POLL_S)  # our own link: look for TIMESYNC requests
-        with self._cond:
-            idle = not (self._queue or self._rx or self._health_texts)
-            if idle and not self._stop.is_set():
-                self._cond.wait(timeout)
+        idle = not (self._queue or self._rx or self._health_texts)
+        if idle and not self._stop.is_set():
+            self._wakeup.wait(timeout)  # a signal set before it returns at once
 
     # ------------------------------------------------------------- link
     def _open_link(self, now: float) -> None:
@@ -362,7 +351,7 @@ class MavlinkOutput:
     def _send(self, name: str, *args: Any) -> bool:
         """Call `mav.<name>_send(*args)`; False (and the link reopens) on failure."""
         if self._shared is not None:
-            ok = self._shared.send(lambda mav: getattr(mav, name + "_send")(*args))
+            ok = self._shared.send(lambda mav: self._call(mav, name, args))
             if ok:
                 with self._lock:
                     counts = self._stats.sent_by_type
@@ -372,7 +361,7 @@ class MavlinkOutput:
         if conn is None:
             return False
         try:
-            getattr(conn.mav, name + "_send")(*args)
+            self._call(conn.mav, name, args)
         except Exception as e:  # noqa: BLE001 - socket, serial and struct errors alike
             self._failed(f"send failed: {e}", time.monotonic())
             return False
@@ -385,11 +374,16 @@ class MavlinkOutput:
             counts[name] = counts.get(name, 0) + 1
         return True
 
+    def _call(self, mav: Any, name: str, args: tuple) -> None:
+        # When the send began: after it this thread may wait 30 ms for the GIL.
+        self._send_started = time.monotonic()
+        getattr(mav, name + "_send")(*args)
+
     def _receive(self) -> None:
         """Answer TIMESYNC requests; note the origin's confirmation."""
         if self._shared is not None:
             while self._rx:
-                self._on_message(self._rx.popleft())
+                self._on_message(*self._rx.popleft())
             return
         for _ in range(100):
             conn = self._conn
@@ -405,35 +399,58 @@ class MavlinkOutput:
                 return
             if msg is None:
                 return
-            self._on_message(msg)
+            self._on_message(msg, self._clock_ns())
 
-    def _on_message(self, msg: Any) -> None:
+    def _await_answer(self, ts1: int) -> None:
+        """Read our link at once until `ts1` is answered (polling adds offset error)."""
+        deadline = time.monotonic() + ANSWER_WAIT_S
+        while self._conn is not None and self.timesync.pending(ts1):
+            left = deadline - time.monotonic()
+            if left <= 0 or not self._conn.select(left):
+                return
+            self._receive()
+
+    def _on_message(self, msg: Any, t_rx_ns: int) -> None:
         kind = msg.get_type()
-        if kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", "")):
-            with self._lock:
-                self._stats.signature_rejects += 1
-        elif kind == "TIMESYNC" and msg.tc1 == 0:
+        rejected = kind == "BAD_DATA" and "signature" in str(getattr(msg, "reason", ""))
+        with self._lock:
+            self._stats.received += 1
+            self._stats.signature_rejects += int(rejected)
+        if rejected:
+            return
+        if kind == "TIMESYNC" and msg.tc1 == 0:
             if self._send("timesync", self._clock_ns(), msg.ts1):
                 with self._lock:
                     self._stats.timesync_replies += 1
+        elif kind == "TIMESYNC":  # an answer: to one of our requests?
+            if self.timesync.on_answer(msg.tc1, msg.ts1, t_rx_ns):
+                with self._lock:
+                    self._stats.timesync_answers += 1
         elif kind == "GPS_GLOBAL_ORIGIN":
             self._origin.on_confirmed()
 
     # ------------------------------------------------------------- messages
-    def _handle(self, event: FeedEvent) -> None:
+    def _handle(self, event: FeedEvent, trusted: bool = True) -> None:
         for severity, text in self._event_texts(event):
             self._statustext(severity, text)
         if event.changed:
             self._heartbeat()
         if event.sample is None:
             return
+        t0 = time.perf_counter()
         sent = (self._send_odometry(event.sample) if self.cfg.message == "odometry"
                 else self._send_vision(event.sample))
+        t_written = self._pose_written
         with self._lock:
             if sent:
                 self._stats.poses_sent += 1
+                self._stats.untrusted_sent += int(not trusted)
             else:
                 self._stats.not_sent += 1
+        if self.on_stage is not None:
+            self.on_stage("mavlink_encode_send", (time.perf_counter() - t0) * 1e3)
+        if sent and self.on_written is not None:
+            self.on_written(event.sample.time_usec, t_written)
         if sent:
             self.counter_store.save(event.sample.reset_counter)
 
@@ -446,18 +463,16 @@ class MavlinkOutput:
         return event.notices + event.texts
 
     def _send_odometry(self, s: VisionSample) -> bool:
-        return self._send(
-            "odometry", s.time_usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD,
-            *s.p_L_m.tolist(), s.q_wxyz.tolist(), *s.v_B_m_s.tolist(), *s.w_B_rad_s.tolist(),
-            diag_cov21(s.pose_var), diag_cov21(s.twist_var_B), s.reset_counter,
-            MAV_ESTIMATOR_TYPE_VIO, s.quality,
-        )
+        ok = self._send("odometry", *odometry_args(s))
+        self._pose_written = self._send_started
+        return ok
 
     def _send_vision(self, s: VisionSample) -> bool:
         ok = self._send(
             "vision_position_estimate", s.time_usec, *s.p_L_m.tolist(),
             *euler_rpy(s.R_L_B).tolist(), diag_cov21(s.pose_var), s.reset_counter,
         )
+        self._pose_written = self._send_started
         if ok and np.all(np.isfinite(s.v_L_m_s)):
             cov9 = [0.0] * 9
             cov9[0], cov9[4], cov9[8] = (float(v) for v in s.v_var_L)

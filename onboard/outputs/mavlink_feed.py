@@ -362,3 +362,13 @@ class VisionFeed:
         self.state = state
         texts = ((SEVERITY[state], text),) if changed else ()
         return FeedEvent(sample, state, changed, texts)
+
+
+def odometry_args(s: VisionSample) -> tuple:
+    """ODOMETRY's fields for `mav.odometry_send` / `odometry_encode`, in order."""
+    return (
+        s.time_usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD,
+        *s.p_L_m.tolist(), s.q_wxyz.tolist(), *s.v_B_m_s.tolist(), *s.w_B_rad_s.tolist(),
+        diag_cov21(s.pose_var), diag_cov21(s.twist_var_B), s.reset_counter,
+        MAV_ESTIMATOR_TYPE_VIO, s.quality,
+    )

@@ -1,5 +1,6 @@
-"""The trajectory plot of a replay: estimate against ground truth, top view and
-height, with the error over time.
+"""The trajectory plot of a replay: estimate against ground truth, top view,
+with the error over time (ATE, and the per-frame error when given) and the
+key-frame changes marked.
 """
 
 from __future__ import annotations
@@ -34,8 +35,13 @@ def plot_trajectory(
     t_s: np.ndarray,
     errors_m: np.ndarray,
     title: str,
+    step_errors_m: np.ndarray | None = None,
+    key_change: np.ndarray | None = None,
 ) -> bool:
-    """Top view of the aligned estimate against ground truth plus ATE over time.
+    """Top view of the aligned estimate against ground truth plus ATE over time;
+    with `step_errors_m` (per row, the lag-1 RPE) a panel of the per-frame error,
+    with `key_change` (per row, bool) the key-frame changes as vertical lines on
+    the error panels and dots on the estimate.
 
     Returns False if matplotlib is not installed (it is an optional extra).
     """
@@ -55,10 +61,19 @@ def plot_trajectory(
     a, b = _plot_axes(gt if len(gt) else est)
 
     # Figure() without pyplot: no global figure registry, safe off the main thread.
-    fig = Figure(figsize=(8, 10), layout="constrained")
-    ax_top, ax_err = fig.subplots(2, 1, height_ratios=[3, 1])
+    change = (np.zeros(len(t), dtype=bool) if key_change is None
+              else np.asarray(key_change, dtype=bool).reshape(-1))
+    fig = Figure(figsize=(8, 12 if step_errors_m is not None else 10), layout="constrained")
+    if step_errors_m is None:
+        ax_top, ax_err = fig.subplots(2, 1, height_ratios=[3, 1])
+        ax_step = None
+    else:
+        ax_top, ax_err, ax_step = fig.subplots(3, 1, height_ratios=[3, 1, 1])
     ax_top.plot(gt[:, a], gt[:, b], color="0.3", lw=1.5, label="ground truth")
     ax_top.plot(est[:, a], est[:, b], color="tab:red", lw=1.0, label="estimate (SE(3)-aligned)")
+    if change.any():
+        ax_top.plot(est[change, a], est[change, b], ".", color="tab:blue", ms=4,
+                    label=f"key-frame change ({int(change.sum())})")
     if len(gt):
         ax_top.plot(gt[0, a], gt[0, b], "o", color="0.3", label="start")
     ax_top.set_xlabel(f"{_AXIS_NAMES[a]} [m]")
@@ -77,6 +92,17 @@ def plot_trajectory(
     ax_err.set_xlabel("time [s]")
     ax_err.set_ylabel("ATE [m]")
     ax_err.grid(True, alpha=0.3)
+    if ax_step is not None:
+        step_mm = np.asarray(step_errors_m, dtype=np.float64).reshape(-1) * 1e3
+        ax_step.plot(t_rel_s, step_mm, color="tab:red", lw=0.8)
+        ax_step.set_xlabel("time [s]")
+        ax_step.set_ylabel("per-frame error [mm]")
+        ax_step.grid(True, alpha=0.3)
+    for ax in (ax_err, ax_step):
+        if ax is not None and change.any():
+            # One collection, not a line per change: hundreds of keys stay cheap.
+            ax.vlines(t_rel_s[change], 0.0, 1.0, transform=ax.get_xaxis_transform(),
+                      color="tab:blue", lw=0.5, alpha=0.5, label="key-frame change")
 
     path = Path(path_png)
     # Temp file then rename so a watcher never picks up a half-written PNG.

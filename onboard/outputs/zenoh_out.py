@@ -23,7 +23,8 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         map_digest: mapcodec.map_digest of the ids and
                         CRC-32s held), keyframes_published (distinct ids),
                         bytes_put by kind, dropped_poses, dropped_keyframes,
-                        errors, uptime_s, boot (random per process: a
+                        errors, uptime_s, trackers_used and trackers_left_out
+                        (the fused tracker: names; name -> why), boot (random per process: a
                         restarted vehicle keeps its id, its boot changes).
                         A last status goes out at close.
     alive               a liveliness token while the session is up.
@@ -82,6 +83,8 @@ from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, Trac
 from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
 from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.wake import Wake
+from onboard.outputs.zenoh_link import ZenohLink
 from onboard.outputs.zenoh_session import (
     Worker,
     key_prefix,
@@ -247,12 +250,20 @@ class ZenohOutput:
         self._period = {"frames": 0, "tracked": 0, "psr_sum": 0.0, "psr_n": 0}
         self._period_start = clock()
         self._last: TrackResult | None = None
+        # The link to the router or peers of `connect`: one warning when it
+        # goes, one line when it is back (onboard/outputs/zenoh_link.py).
+        self.link = ZenohLink(cfg, clock)
+        self.device_state = self.link.state if self.link.watched else None
         self._health: HealthReport | None = None
         self._next_status = clock()
         self._pose_worker: Worker[TrackResult] = Worker(
-            "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._status_tick)
+            "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._tick)
         self._map_worker: Worker[KeyframeCloud] = Worker("zenoh-map", self._put_keyframe, 256)
         self._closed = False
+        # Set by the service (onboard.app.latency.attach_timing): the loop's
+        # latency, TIMESYNC and delay advice in the status; encode-and-put times.
+        self.status_extra: Callable[[], dict[str, Any]] | None = None
+        self.on_stage: Callable[[str, float], None] | None = None
 
     # ------------------------------------------------------------- Output API
     def publish(self, result: TrackResult) -> None:
@@ -262,6 +273,10 @@ class ZenohOutput:
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         self._map_worker.put(cloud)
+
+    def wakeups(self) -> tuple[Wake, ...]:
+        """The publisher threads' wake-ups (onboard/outputs/wake.py)."""
+        return (self._pose_worker.wakeup, self._map_worker.wakeup)
 
     def publish_health(self, report: HealthReport) -> None:
         self._health = report  # one attribute store; the pose thread reads it
@@ -347,6 +362,7 @@ class ZenohOutput:
         ent = self._entities
         if ent is None:
             return  # not connected yet (a client waiting for its router)
+        t0 = time.perf_counter()
         msg = pose_message(result, self._seq)
         msg["boot"] = self.boot
         msg["sent_unix_s"] = time.time()  # latency on the ground (clocks synchronised)
@@ -354,6 +370,12 @@ class ZenohOutput:
         self._seq += 1
         ent.pose.put(data)
         self._bytes["pose"] += len(data)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_pose_encode_put", (time.perf_counter() - t0) * 1e3)
+
+    def _tick(self) -> float:
+        ent = self._entities
+        return min(self.link.poll(None if ent is None else ent.session), self._status_tick())
 
     def _status_tick(self) -> float:
         now = self._clock()
@@ -367,8 +389,11 @@ class ZenohOutput:
         ent = self._entities
         if ent is None:
             return
+        t0 = time.perf_counter()
         data = json.dumps(self._status(now), allow_nan=False)
         ent.status.put(data)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_status_encode_put", (time.perf_counter() - t0) * 1e3)
         self._bytes["status"] += len(data)
 
     def _status(self, now: float) -> dict[str, Any]:
@@ -385,6 +410,7 @@ class ZenohOutput:
             "uptime_s": now - self._start,
             "state": state,
             "health_reason": None if health is None else health.reason,
+            "devices": [] if health is None else list(health.devices),  # each driver's state
             "quality": 0 if last is None else tracking_quality(last),
             "lost_reason": None if last is None else last.lost_reason,
             "frame_hz": p["frames"] / span,
@@ -392,15 +418,22 @@ class ZenohOutput:
             "psr": None if last is None else _num(last.psr),
             "psr_mean": p["psr_sum"] / p["psr_n"] if p["psr_n"] else None,
             "resets": 0 if last is None else int(last.reset_counter),
+            # the fused tracker: which trackers the pose used, why others were left out
+            "trackers_used": None if last is None else list(last.contributors),
+            "trackers_left_out": None if last is None else dict(last.left_out),
             **self.stats(),
+            **(self.status_extra() if self.status_extra is not None else {}),
         }
         self._period = {"frames": 0, "tracked": 0, "psr_sum": 0.0, "psr_n": 0}
         self._period_start = now
         return out
 
     def _put_keyframe(self, cloud: KeyframeCloud) -> None:
+        t0 = time.perf_counter()
         kf = MapKeyframe.from_cloud(cloud)
         data = encode_keyframe(kf)
+        if self.on_stage is not None:
+            self.on_stage("zenoh_map_encode", (time.perf_counter() - t0) * 1e3)
         self._store(kf.keyframe_id, data, kf.num_points)
         delay_s = self._rate.delay_s(len(data), self._clock())
         if delay_s > 0:  # the map rate limit; ends at close (flush what is left)

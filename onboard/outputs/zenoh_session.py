@@ -30,6 +30,7 @@ import zenoh
 
 from onboard import NislamError
 from onboard.outputs.settings import ZenohConfig
+from onboard.outputs.wake import Wake
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +144,7 @@ class Worker(Generic[T]):
         self._handle = handle
         self._tick = tick
         self._items: deque[T] = deque(maxlen=maxlen)
-        self._cond = threading.Condition()
+        self.wakeup = Wake()  # never makes the loop wait (onboard/outputs/wake.py)
         self._stopping = False
         self.dropped = 0
         self.errors = 0
@@ -155,22 +156,21 @@ class Worker(Generic[T]):
         self._thread.start()
 
     def put(self, item: T) -> None:
-        with self._cond:
-            if len(self._items) == self._items.maxlen:
-                self.dropped += 1
-            self._items.append(item)
-            self._cond.notify()
+        # deque.append is atomic and drops the oldest when full; one producer
+        # (the loop) counts the drops.
+        if len(self._items) == self._items.maxlen:
+            self.dropped += 1
+        self._items.append(item)
+        self.wakeup.set()
 
     def wake(self) -> None:
         """Run `tick()` now rather than when it asked to."""
-        with self._cond:
-            self._cond.notify()
+        self.wakeup.set()
 
     def stop(self, timeout_s: float) -> bool:
         """Handle what is queued, then stop; False if the thread is still busy."""
-        with self._cond:
-            self._stopping = True
-            self._cond.notify()
+        self._stopping = True
+        self.wakeup.set_now()
         if self._thread.is_alive():
             self._thread.join(timeout_s)
         return not self._thread.is_alive()
@@ -178,14 +178,11 @@ class Worker(Generic[T]):
     def _run(self) -> None:
         wait_s: float | None = 0.0 if self._tick else None
         while True:
-            with self._cond:
-                if not self._items and not self._stopping:
-                    self._cond.wait(wait_s)
-                items = list(self._items)
-                self._items.clear()
-                stopping = self._stopping
-            for item in items:
-                self._guard(self._handle, item)
+            if not self._items and not self._stopping:
+                self.wakeup.wait(wait_s)
+            stopping = self._stopping  # read before the queue: what came before stop goes out
+            while self._items:
+                self._guard(self._handle, self._items.popleft())  # atomic: no item lost
             if self._tick is not None:
                 wait_s = self._guard(self._tick)
                 wait_s = 1.0 if wait_s is None else max(0.0, wait_s)

@@ -10,7 +10,7 @@ device's host-synced timestamps are.
 
 Faults a test can trigger: `fail_opens` (device searches that find nothing),
 `unplug()` (the running device vanishes: its queues close, as depthai does
-on USB loss), `read_error()` (a queue read raises like depthai's
+on USB loss), `stalled = True` (no frames, the device still there), `read_error()` (a queue read raises like depthai's
 XLinkReadError, a RuntimeError). `API_NAMES` lists every attribute path the stand-in provides,
 so a test can check each exists in the real depthai.
 """
@@ -353,7 +353,9 @@ class Pipeline:
         n = 0
         while not self._stop.is_set():
             now = time.monotonic()
-            if now >= next_frame and "sync" in self.queues:
+            if now >= next_frame and "sync" in self.queues and dai.stalled:
+                next_frame += frame_period  # the sensor delivers nothing (stall())
+            elif now >= next_frame and "sync" in self.queues:
                 t_ns = time.monotonic_ns() - dai.capture_latency_ns
                 self.captured_ns.append(t_ns)
                 colour = np.full((h, w, 3), n % 256, np.uint8)
@@ -399,6 +401,7 @@ class FakeDai:
         self.depth_size = depth_size
         self.devices: list[Device] = []
         self.searches = 0
+        self.stalled = False  # frames stop while the device stays connected
         dai = self
 
         class _Device(Device):

@@ -20,6 +20,9 @@ Control lines on stdin (one reply line on stdout each, flushed):
   partial N    N sentences cut off before their end          -> "injected partial N"
   garbage N    N lines of noise without a start character    -> "injected garbage N"
   silence S    no output for S seconds (commands answered)   -> "silent S" ... "talking"
+  noise S      S seconds of noise lines instead of sentences -> "noise S" ... "clean"
+  nan S        S seconds of sentences with NaN values        -> "nan S" ... "clean"
+  frozen S     S seconds repeating one sample's values       -> "frozen S" ... "clean"
   unplug       close the pty and remove the symlink          -> "unplugged"
   replug       a new pty behind the same symlink             -> "plugged /dev/pts/N"
   quit
@@ -70,6 +73,8 @@ class Device:
         self.badsum = 0
         self.partial = 0
         self.silent_until = 0.0
+        self.spoilt: tuple[str, float] | None = None  # (noise | nan | frozen, until)
+        self.frozen_line: bytes | None = None
         self.next_due = time.monotonic()
 
     def reset_settings(self) -> None:
@@ -142,6 +147,20 @@ class Device:
             say(f"configured divider={self.divider}")
 
     def sample_line(self) -> bytes:
+        kind = self.spoilt[0] if self.spoilt else ""
+        if kind == "noise":
+            return b"\x07noise\xff%d\r\n" % self.seq
+        if kind == "frozen" and self.frozen_line is not None:
+            return self.frozen_line
+        line = self._sample_line()
+        if kind == "nan":
+            body = line[:line.index(b"*")].decode().split(",")
+            body[2:6] = ["nan"] * 4
+            line = frame(",".join(body))
+        self.frozen_line = line
+        return line
+
+    def _sample_line(self) -> bytes:
         seq = self.seq
         self.seq += 1
         half = 0.5 * 0.01 * seq
@@ -195,6 +214,9 @@ class Device:
             for i in range(int(arg)):
                 self.queue(b"\x07noise\xff%d\r\n" % i)
             say(f"injected garbage {arg}")
+        elif cmd in ("noise", "nan", "frozen"):
+            self.spoilt = (cmd, time.monotonic() + float(arg))
+            say(f"{cmd} {arg}")
         elif cmd == "silence":
             self.silent_until = time.monotonic() + float(arg)
             say(f"silent {arg}")
@@ -215,6 +237,9 @@ class Device:
             if was_silent and not silent:
                 say("talking")
             was_silent = silent
+            if self.spoilt is not None and now >= self.spoilt[1]:
+                self.spoilt = None
+                say("clean")
             streaming = self.master is not None and self.configured and not silent
             period = self.divider / BASE_RATE_HZ
             if streaming and now >= self.next_due:

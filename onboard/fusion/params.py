@@ -1,0 +1,38 @@
+"""Fusion parameters (the `[fusion]` configuration section), read by
+`onboard.fusion.fused.FusedTracker`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Filter, gate and measurement-noise settings of the fused tracker
+    (docs/fusion.md); the figures behind the defaults are in docs/results.md
+    ("Fused tracker")."""
+
+    # Motion model: constant velocity driven by white acceleration, its spectral
+    # density's square root (m/s^2 per sqrt(Hz)): velocity sd grows by this * sqrt(dt).
+    accel_sd_m_s2: float = 5.0
+    initial_speed_sd_m_s: float = 0.5  # velocity is unknown at the first pose
+    # Gate: a tracker's motion whose squared Mahalanobis distance to the
+    # prediction (3 dof) exceeds this is left out (12: chi-square 99.3 %).
+    gate_chi2: float = 12.0
+    rejoin_sd_m: float = 0.1  # a tracker that restarted: its world's offset known to this sd
+    rejoin_after_frames: int = 3  # left out by the gate this many frames in a row: re-anchored
+    # Measurement noise (onboard.fusion.measurements), scaled; the defaults put
+    # the reported 1 sigma over 55-81 % of the error on the synthetic flights.
+    nislam_var_scale: float = 1.0
+    fastorb_var_scale: float = 4.0
+    key_drift_scale: float = 1.0  # a new key: the tracker's world drifts by its pose covariance times this
+    nislam_peak_cells: float = 0.3  # NI-SLAM lateral sd at a firm peak [cells of the key's resolution]
+    psr_full: float = 60.0  # ... growing as psr_full / PSR below this PSR
+    nislam_cells_per_sample: float = 64.0  # NI-SLAM depth: well-matched cells per independent sample
+    fastorb_full_inliers: int = 150  # FastORB: below this many inliers the variance grows as (n_full / n)^2
+    min_sd_m: float = 0.001  # floor of a measurement's position sd (per axis)
+    axes_gain: float = 0.05  # per frame: a tracker's world axes in W follow the AHRS this fast (0: fixed at the anchor)
+    # Output
+    max_coast_s: float = 0.2  # no tracker for longer than this: lost (then reset_counter + 1)
+    quality_sd_m: float = 0.002  # a motion measured this well (fused sd) has quality 100
