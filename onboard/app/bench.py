@@ -10,6 +10,8 @@ depth remaps, when the camera is distorted), and the outputs' encoding on
 their threads (the MAVLink feed's sample and ODOMETRY packet, the zenoh pose's
 JSON, each finished key frame's map message). `nislam run --out` measures the
 same stages in the running service (run.json `stages_ms`, onboard/app/latency.py).
+A back end run in slices after each frame (FastORB's local BA,
+`backend_step()`) is timed apart too: per slice and per key frame.
 """
 
 from __future__ import annotations
@@ -76,6 +78,8 @@ def bench(
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
     frames, stages = read_timed(seq, max_frames)
     frame_ms: list[float] = []
+    backend_ms: list[float] = []  # FastORB's back-end slices, run after a frame and timed apart
+    job_ms: list[float] = []  # ... summed per key frame (one local BA)
     results: list[TrackResult] = []
     # by kind: a frame that starts a key or re-uses a kept one does more work
     kind_ms: dict[str, list[float]] = {"keyframe": [], "reused": [], "plain": []}
@@ -94,6 +98,14 @@ def bench(
             kind_ms[kind].append(dt_ms)
             for part, ms in getattr(tracker, "last_part_ms", {}).items():
                 parts_ms.setdefault(part, []).append(ms)
+            step = getattr(tracker, "backend_step", None)
+            if step is not None:
+                t0 = time.perf_counter()
+                if step():
+                    backend_ms.append((time.perf_counter() - t0) * 1e3)
+        mapping = getattr(tracker, "mapping", None)
+        if mapping is not None:
+            job_ms.extend(mapping.stats.job_ms)
     by_kind: dict[str, Any] = {}
     for kind, ms in kind_ms.items():
         by_kind[f"{kind}_frames"] = len(ms) // repeat
@@ -107,9 +119,20 @@ def bench(
         "repeat": repeat,
         **frame_time_stats(frame_ms),
         **by_kind,
+        **backend_stats(backend_ms, job_ms),
         "stages_ms": {k: stage_stats(v) for k, v in stages.items()},
         "parts_ms_median": {part: float(np.median(ms)) for part, ms in parts_ms.items()},
     }
+
+
+def backend_stats(slice_ms: list[float], job_ms: list[float]) -> dict[str, Any]:
+    """The back end's time apart from tracking (FastORB's local mapping): per
+    slice (one unit run after a frame) and per key frame (one local BA)."""
+    def q(a: list[float], p: float) -> float | None:
+        return float(np.percentile(a, p)) if a else None
+    return {"backend_slices": len(slice_ms), "backend_slice_ms_median": q(slice_ms, 50),
+            "backend_slice_ms_p95": q(slice_ms, 95), "backend_keyframes": len(job_ms),
+            "backend_keyframe_ms_median": q(job_ms, 50), "backend_keyframe_ms_p95": q(job_ms, 95)}
 
 
 def stage_stats(ms: list[float]) -> dict[str, float | int | None]:

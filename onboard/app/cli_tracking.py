@@ -57,6 +57,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     config_arg(p)
     p.add_argument("--tracker", metavar="NAME", help="tracker (nislam, fastorb, fused)")
     p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")
+    p.add_argument("--no-local-ba", action="store_true",
+                   help="FastORB without its back end (local mapping and BA)")
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -71,6 +73,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     out = {key: getattr(args, a) for a, key in flags.items() if getattr(args, a, None) is not None}
     if getattr(args, "no_attitude_calibration", False):
         out["nislam.calibrate_time_offset"] = False
+    if getattr(args, "no_local_ba", False):
+        out["fastorb.local_ba"] = False
     return out
 
 
@@ -119,6 +123,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print("median by part: " + ", ".join(
             f"{part} {ms:.2f} ms ({100.0 * ms / total:.0f} %)"
             for part, ms in stats["parts_ms_median"].items()))
+    if stats["backend_keyframes"]:
+        print(f"back end (after the frames, apart): {stats['backend_slices']} slices, median "
+              f"{stats['backend_slice_ms_median']:.2f} ms, p95 {stats['backend_slice_ms_p95']:.2f}"
+              f" ms; per key frame ({stats['backend_keyframes']}) median "
+              f"{stats['backend_keyframe_ms_median']:.1f} ms, p95 "
+              f"{stats['backend_keyframe_ms_p95']:.1f} ms")
     return 0
 
 

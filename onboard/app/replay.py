@@ -69,6 +69,7 @@ class TrackLog:
     attitude_offset_s: float | None = None
     keyframes_reused: int = 0
     clouds: dict[int, KeyframeCloud] = field(default_factory=dict)  # by id: a kept key's newest
+    backend_ms: list[float] = field(default_factory=list)  # FastORB's back-end slices, timed apart
 
     @property
     def frames(self) -> int:
@@ -190,6 +191,7 @@ def track_sequence(
     out = TrackLog()
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     frames = islice(seq.frames(), max_frames)
+    backend_step = getattr(tracker, "backend_step", None)
     # disable=None lets tqdm switch itself off when stderr is not a terminal.
     with tqdm(frames, total=total, unit="frame", desc=seq.path.name, file=sys.stderr,
               disable=None if progress else True) as bar:
@@ -197,6 +199,10 @@ def track_sequence(
             t0 = time.perf_counter()
             result = tracker.track(frame, attitude)
             out.frame_ms.append((time.perf_counter() - t0) * 1e3)
+            if backend_step is not None:  # one unit of back-end work in the frame's idle time
+                t0 = time.perf_counter()
+                if backend_step():
+                    out.backend_ms.append((time.perf_counter() - t0) * 1e3)
             if result.trusted:
                 out.t_s.append(result.t_s)
                 out.p_W_m.append(result.p_W_m)

@@ -48,10 +48,52 @@ class Keyframe:
     ids: np.ndarray  # (N,) landmark ids: the same physical point keeps its id and position
     bgr: np.ndarray | None
     depth_m: np.ndarray | None
+    z: np.ndarray | None = None  # (N,) depth measured at uv [m], 0: none (local BA)
 
     def __post_init__(self) -> None:
-        self.centre_W = camera_in_world(self.T_cw)[0]
-        self.axis_W = self.T_cw[2, :3].copy()  # optical axis in the world: row 3 of R_cw
+        self.set_pose(self.T_cw)
+
+    def set_pose(self, T_cw: np.ndarray) -> None:
+        self.T_cw = T_cw
+        self.centre_W = camera_in_world(T_cw)[0]
+        self.axis_W = T_cw[2, :3].copy()  # optical axis in the world: row 3 of R_cw
+
+    def drop_rows(self, rows: np.ndarray) -> None:
+        """Erase these observations (rows of uv, desc, xyz_W, ids, z)."""
+        keep = np.ones(len(self.ids), bool)
+        keep[rows] = False
+        self._keep(keep)
+
+    def drop_ids(self, ids: np.ndarray) -> None:
+        if len(ids):
+            self._keep(~np.isin(self.ids, ids))
+
+    def _keep(self, keep: np.ndarray) -> None:
+        if keep.all():
+            return
+        self.uv, self.desc, self.xyz_W, self.ids = (
+            self.uv[keep], self.desc[keep], self.xyz_W[keep], self.ids[keep])
+        if self.z is not None:
+            self.z = self.z[keep]
+
+    def transform_points(self, delta_W: np.ndarray, exclude: np.ndarray) -> None:
+        """Move the landmarks (but those with ids in `exclude`) by the rigid
+        world motion delta_W."""
+        sel = ~np.isin(self.ids, exclude)
+        if sel.any():
+            self.xyz_W = self.xyz_W.copy()
+            self.xyz_W[sel] = self.xyz_W[sel] @ delta_W[:3, :3].T + delta_W[:3, 3]
+
+    def move_points(self, ids: np.ndarray, xyz_W: np.ndarray) -> None:
+        """New positions for those of the landmarks `ids` (sorted) this key
+        frame observes."""
+        if not len(ids) or not len(self.ids):
+            return
+        pos = np.minimum(np.searchsorted(ids, self.ids), len(ids) - 1)
+        hit = ids[pos] == self.ids
+        if hit.any():
+            self.xyz_W = self.xyz_W.copy()
+            self.xyz_W[hit] = xyz_W[pos[hit]]
 
 
 @dataclass(frozen=True)
@@ -119,8 +161,38 @@ class LocalMap:
         self._cached = ((), MapPoints.empty())
         self._views = None
 
+    def keyframes(self) -> list[Keyframe]:
+        """All kept key frames, oldest first."""
+        return list(self._kfs)
+
+    def remove(self, keyframe_id: int) -> None:
+        for kf in self._kfs:
+            if kf.keyframe_id == keyframe_id:
+                self._kfs.remove(kf)
+                break
+        self.changed()
+
+    def changed(self) -> None:
+        """Key frames moved, removed or their landmarks changed: rebuild the
+        cached views and local-map points."""
+        self._cached = ((), MapPoints.empty())
+        self._views = None
+
     def newest_first(self, n: int) -> list[Keyframe]:
         return list(self._kfs)[::-1][:n]
+
+    def reloc_candidates(self, cursor: int, n: int) -> tuple[list[Keyframe], int]:
+        """Key frames to try for one lost frame, and the next cursor: the two
+        newest, then the next `n` of all kept ones in turn (newest to oldest,
+        wrapping), so a long loss works through the whole map a few at a
+        time. Key frames made just before a loss are often blurred and useless."""
+        kfs = self.newest_first(len(self._kfs))
+        rest = kfs[2:]
+        if not rest:
+            return kfs, cursor
+        n = min(n, len(rest))
+        start = cursor % len(rest)
+        return kfs[:2] + [rest[(start + i) % len(rest)] for i in range(n)], start + n
 
     def nearest(self, T_cw: np.ndarray, n: int) -> list[Keyframe]:
         """Up to `n` key frames by view similarity to the pose T_cw: optical

@@ -77,3 +77,8 @@ class FastOrbParams:
     lost_reset_frames: int = 30  # re-localisation fails this long: new map (reset_counter + 1)
     init_from_attitude: bool = True  # orient a new map by the attitude source, if it has one
     map_cloud_stride: int = 4  # key-frame clouds from every n-th pixel; 0: none
+    # Local mapping (mapping.py, bundle.py): local BA per key frame, in slices after frames
+    local_ba: bool = True  # false: no back end (`--no-local-ba`)
+    local_ba_keyframes: int = 6  # the new key frame and its most covisible ones, optimised
+    local_ba_fixed_keyframes: int = 4  # other key frames seeing their landmarks, held fixed
+    local_ba_depth_sd: float = 0.0015  # depth sd per m^2 of depth (Kinect-like; the sim's) [1/m]

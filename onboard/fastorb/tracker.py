@@ -1,6 +1,7 @@
 """FastORB tracker: descriptor-free keypoint tracking on RGB-D frames (Fu, Yu,
 Wang, Yang, He, Zhang, Mian, "Fast ORB-SLAM without Keypoint Descriptors",
-IEEE TIP 2022), the tracking front end only (no local BA, no loop closure).
+IEEE TIP 2022): the tracking front end, and local mapping with local BA
+(mapping.py, bundle.py) run in slices by `backend_step()` between frames.
 
 A pure core: arrays in, a `TrackResult` out; no threads, no I/O. It needs no
 attitude sensor: `track()` takes the attitude source for the shared `Tracker`
@@ -43,7 +44,9 @@ from onboard.core.rotations import so3_log
 from onboard.core.se3 import camera_in_world, inverse, make_pose
 from onboard.fastorb import kernels as fastorb_kernels
 from onboard.fastorb.features import Detector, Features, Outcome, Tracked, outcome_result
+from onboard.fastorb.bundle import BaSettings
 from onboard.fastorb.local_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
+from onboard.fastorb.mapping import LocalMapping, MappingSettings, corrected
 from onboard.fastorb.matching import (
     LkSettings,
     epipolar_inliers,
@@ -80,6 +83,10 @@ class FastOrbTracker:
                                 huber_px=p.pnp_huber_px, sigma_gate=p.pnp_sigma_gate,
                                 min_gate_px=p.pnp_min_gate_px, bf_px=p.rgbd_bf_px)
         self._map = LocalMap(p.max_keyframes, p.local_map_keyframes)
+        self.mapping = LocalMapping(
+            self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m),
+            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes),
+        ) if p.local_ba else None
         self._state = TrackState.INITIALIZING
         self._tracked = Tracked.empty()
         self._prev_gray: np.ndarray | None = None
@@ -113,6 +120,19 @@ class FastOrbTracker:
             return self._track(frame, gray)
         finally:
             self._prev_gray = gray
+
+    def backend_step(self) -> bool:
+        """One unit of the back end's work (local mapping: build a BA, one
+        LM iteration, or apply it), for the idle time after a frame; False
+        when there was nothing to do. Never needed for tracking itself."""
+        if self.mapping is None or self.mapping.idle:
+            return False
+        correction = self.mapping.step()
+        if correction is not None:  # the tracked points and recent poses follow
+            self._tracked = corrected(self._tracked, correction)
+            back = inverse(correction.delta_W)
+            self._history = deque(((t, T @ back) for t, T in self._history), maxlen=3)
+        return True
 
     def finish(self) -> KeyframeCloud | None:
         """End of a run: the newest key frame's cloud."""
@@ -158,18 +178,14 @@ class FastOrbTracker:
 
     def _firm(self, outcome: Outcome) -> bool:
         """Whether the pose is firm enough to place new landmarks with: the
-        error it would put into a landmark at the depth of its inliers (the
-        median over them of the largest per-axis standard deviation, from
-        the PnP covariance) at most landmark_max_sd_m. A blurred frame's few
-        tracks give a pose that is fine to report but would carry its error
-        into every landmark made from it, and from there into every later
-        pose. The camera position's own spread is the wrong measure: with
-        far points (beyond rgbd_max_depth_m, no disparity residual) a
-        sideways shift and a turn look alike, so the position alone is loose
-        (yaw-spin at 80 deg/s, walls 4.5 m away: 2.5-14 mm) while the
-        landmarks it places, which sit where the pixels and depths say, are
-        off by 0.7-2 mm; gating on the position stopped every key frame in a
-        fast turn until the tracks ran out of the view."""
+        error it puts into a landmark at its inliers' depth (pose.landmark_sd)
+        at most landmark_max_sd_m. A blurred frame's pose is fine to report
+        but would carry its error into every landmark made from it. Not the
+        camera position's sd: with far points (no disparity residual) a
+        sideways shift and a turn look alike, the position is loose (yaw-spin
+        at 80 deg/s, walls at 4.5 m: 2.5-14 mm) while the landmarks sit where
+        pixels and depths say (0.7-2 mm); that gate stopped every key frame
+        in fast turns until the tracks ran out of the view."""
         sd = landmark_sd(outcome.T_cw, outcome.pnp.cov, outcome.tracked.xyz_W)
         return bool(np.isfinite(sd) and sd <= self.p.landmark_max_sd_m)
 
@@ -357,11 +373,15 @@ class FastOrbTracker:
         room = max(self.p.orb_features - len(tracked), 0)
         outcome.tracked = tracked.extended(fresh.subset(np.flatnonzero(free)[:room]))
         finished = self._take_cloud()
+        z = sample_depth(frame.depth_m, kf_pts.uv, self.p.min_depth_m, self.p.max_depth_m,
+                         self.p.depth_edge_rel)
         kf = Keyframe(self._next_keyframe_id, frame.t_s, outcome.T_cw.copy(), gray,
                       kf_pts.uv.astype(np.float64), feats.desc[kf_idx], kf_pts.xyz_W, kf_pts.ids,
-                      frame.bgr, frame.depth_m)
+                      frame.bgr, frame.depth_m, z)
         self._next_keyframe_id += 1
         self._map.add(kf)
+        if self.mapping is not None:
+            self.mapping.on_keyframe(kf)
         self._unfinished = kf
         self._frames_since_keyframe = 0
         # The 65 % rule's reference is what the key frame hands on to tracking
@@ -400,6 +420,8 @@ class FastOrbTracker:
         if len(first) < self.p.keyframe_min_inliers:
             return self._unposed(frame.t_s, TrackState.INITIALIZING, "too few keypoints with depth")
         self._map.clear()
+        if self.mapping is not None:
+            self.mapping.reset()
         pnp = PnpResult(T_cw, np.ones(len(first), bool), 0.0, np.diag([1e-8] * 6))
         outcome = Outcome(T_cw, first, pnp, feats)
         finished = self._make_keyframe(frame, gray, outcome)
@@ -423,7 +445,9 @@ class FastOrbTracker:
         reset_counter counts it; lost_reset_frames failures in a row start a
         new map at the last trusted pose."""
         feats = self._detector.detect(gray, with_descriptors=True)
-        for kf in self._reloc_candidates():
+        kfs, self._reloc_cursor = self._map.reloc_candidates(self._reloc_cursor,
+                                                             self.p.reloc_keyframes)
+        for kf in kfs:
             q, t = match_by_ratio(feats.desc, kf.desc, self.p.reloc_ratio, self.p.match_max_hamming)
             pnp = solve_pnp(kf.xyz_W[t], feats.uv[q], self.K, self._pnp,
                             self.p.reloc_min_inliers)
@@ -444,20 +468,6 @@ class FastOrbTracker:
             self._reset_counter += 1
             return self._initialise(frame, gray, self._initial_pose(frame.t_s, attitude))
         return self._unposed(frame.t_s, TrackState.LOST, "re-localisation failed")
-
-    def _reloc_candidates(self) -> list:
-        """Key frames to try this lost frame: the two newest, then the next
-        reloc_keyframes of all kept ones in turn (newest to oldest, wrapping),
-        so a long loss works through the whole map a few at a time. Key frames
-        made just before a loss are often blurred and useless."""
-        kfs = self._map.newest_first(len(self._map))
-        rest = kfs[2:]
-        if not rest:
-            return kfs
-        n = min(self.p.reloc_keyframes, len(rest))
-        start = self._reloc_cursor % len(rest)
-        self._reloc_cursor = start + n
-        return kfs[:2] + [rest[(start + i) % len(rest)] for i in range(n)]
 
     # ---------------------------------------------------------------- results
     def _tracked_result(
