@@ -18,6 +18,7 @@ from test_fastorb import flight
 
 from onboard.core.messages import RgbdFrame, TrackState
 from onboard.core.se3 import inverse, make_pose
+from onboard.fastorb.params import FastOrbParams
 from onboard.fastorb.pose import landmark_sd
 from onboard.fastorb.tracker import FastOrbTracker
 
@@ -90,12 +91,14 @@ def test_local_ba_runs_in_slices_and_keeps_the_poses() -> None:
     room = Room(seed=3)
     poses = flight(36)
     frames = [RgbdFrame(k * DT, *room.render(R, c)) for k, (R, c) in enumerate(poses)]
-    stepped, plain = FastOrbTracker(INTR), FastOrbTracker(INTR)
+    with_ba = FastOrbParams(local_ba=True)  # off by default
+    stepped, plain = FastOrbTracker(INTR, with_ba), FastOrbTracker(INTR, with_ba)
     results = []
     for f in frames:
         results.append(stepped.track(f, NoAttitude()))
         stepped.backend_step()
         plain.track(f, NoAttitude())
+    assert FastOrbTracker(INTR).mapping is None  # off by default, as in `nislam run`
     assert stepped.mapping is not None and stepped.mapping.stats.jobs >= 1
     assert plain.mapping is not None and plain.mapping.stats.jobs == 0
     assert all(r.trusted for r in results)

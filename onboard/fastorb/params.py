@@ -78,7 +78,10 @@ class FastOrbParams:
     init_from_attitude: bool = True  # orient a new map by the attitude source, if it has one
     map_cloud_stride: int = 4  # key-frame clouds from every n-th pixel; 0: none
     # Local mapping (mapping.py, bundle.py): local BA per key frame, in slices after frames
-    local_ba: bool = True  # false: no back end (`--no-local-ba`)
+    # Off by default: `nislam run` runs no back end (its slices are longer than
+    # the idle time between frames), so replays score what flies; and on the
+    # synthetic flights it costs accuracy (docs/fastorb_backend.md).
+    local_ba: bool = False  # true: local mapping and BA after each frame (`--local-ba`)
     local_ba_keyframes: int = 6  # the new key frame and its most covisible ones, optimised
     local_ba_fixed_keyframes: int = 4  # other key frames seeing their landmarks, held fixed
     local_ba_depth_sd: float = 0.0015  # depth sd per m^2 of depth (Kinect-like; the sim's) [1/m]
