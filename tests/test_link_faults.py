@@ -70,7 +70,10 @@ def test_a_client_without_its_router_says_so_in_the_status_devices(caplog):
                 time.sleep(0.05)
             (snap,) = group.device_states()
             assert snap.text().startswith("zenoh router no device (nothing answers at tcp/127")
-            time.sleep(0.6)  # more polls: no more lines
+            looks = out.link.looks + 2  # two more looks at the missing router: no more lines
+            while out.link.looks < looks:
+                assert time.monotonic() < deadline, "the link is no longer looked at"
+                time.sleep(0.05)
         finally:
             out.close(2)
     lines = [r.getMessage() for r in caplog.records]

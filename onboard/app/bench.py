@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from onboard.app.config import Config
+from onboard.app.loop_stats import percentiles_ms
 from onboard.core.camera import undistort_maps
 from onboard.core.messages import TrackResult
 from onboard.fusion.registry import make_tracker
@@ -136,10 +137,7 @@ def backend_stats(slice_ms: list[float], job_ms: list[float]) -> dict[str, Any]:
 
 
 def stage_stats(ms: list[float]) -> dict[str, float | int | None]:
-    if not ms:
-        return {"p50": None, "p95": None, "p99": None, "n": 0}
-    p = np.percentile(np.asarray(ms), (50, 95, 99))
-    return {"p50": float(p[0]), "p95": float(p[1]), "p99": float(p[2]), "n": len(ms)}
+    return {**percentiles_ms(ms), "n": len(ms)}
 
 
 def read_timed(seq: Any, max_frames: int | None) -> tuple[list[Any], dict[str, list[float]]]:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from onboard.app.loop_stats import MsHistogram
+from onboard.app.loop_stats import MsHistogram, percentiles_ms
 
 log = logging.getLogger(__name__)
 
@@ -45,14 +45,6 @@ WINDOW = 300  # frames in the status's recent percentiles (10 s at 30 Hz)
 def percentiles(h: MsHistogram) -> dict[str, float | None]:
     return {"p50": h.percentile(50), "p95": h.percentile(95), "p99": h.percentile(99),
             "max": h.max_ms if h.n else None, "n": h.n}
-
-
-def _window_pcts(buf: np.ndarray, n: int) -> dict[str, float | None]:
-    if n == 0:
-        return {"p50": None, "p95": None, "p99": None}
-    v = buf[:min(n, len(buf))].copy()  # a copy: the writer thread goes on
-    p = np.percentile(v, (50, 95, 99))
-    return {"p50": float(p[0]), "p95": float(p[1]), "p99": float(p[2])}
 
 
 def process_start_monotonic() -> float | None:
@@ -213,7 +205,8 @@ class LoopTiming:
     def recent(self) -> dict[str, Any]:
         """The status's figures: the last WINDOW frames' percentiles."""
         kind, _ = self.latency()
-        return {"kind": kind, **_window_pcts(self._recent, self._recent_n)}
+        return {"kind": kind, **percentiles_ms(  # a copy: the writer thread goes on
+            self._recent[:min(self._recent_n, len(self._recent))].copy())}
 
     def rate_hz(self) -> float | None:
         if self.first_frame_at is None or self.last_frame_at is None or self.frames < 2:

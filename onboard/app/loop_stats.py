@@ -17,6 +17,15 @@ import numpy as np
 from onboard.fusion.switching import SwitchingTracker
 
 
+def percentiles_ms(values: Any) -> dict[str, float | None]:
+    """p50 / p95 / p99 of a sample of milliseconds; None each when it is empty."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        return {"p50": None, "p95": None, "p99": None}
+    p = np.percentile(v, (50, 95, 99))
+    return {"p50": float(p[0]), "p95": float(p[1]), "p99": float(p[2])}
+
+
 class MsHistogram:
     """Per-frame times in fixed 0.05 ms bins up to 2 s: percentiles of a run
     of any length in constant memory (a service runs for hours)."""

@@ -41,6 +41,7 @@ class ZenohLink:
         self._start = clock()
         self._next = self._start
         self._was_up = False
+        self.looks = 0  # times the link was looked at
 
     def poll(self, session: zenoh.Session | None) -> float:
         """Look at the link if it is time; the seconds until the next look."""
@@ -50,6 +51,7 @@ class ZenohLink:
         if now < self._next:
             return self._next - now
         self._next = now + POLL_S
+        self.looks += 1
         if session is None:
             if now - self._start >= OPEN_GRACE_S:
                 self.state.set(State.NO_DEVICE, f"nothing answers at {self.where}; retrying "
