@@ -292,9 +292,9 @@ class Service:
             tl.t_s.append(result.t_s)
             tl.p_W_m.append(result.p_W_m)
             tl.q_W_C_xyzw.append(q)
+            tl.reference_keyframe_id.append(result.reference_keyframe_id)
             if self.live is not None:
                 self.live.append(result.t_s, result.p_W_m, q)
-            tl.reference_keyframe_id.append(result.reference_keyframe_id)
 
     def _maybe_stats(self, now: float) -> None:
         s = self.stats
