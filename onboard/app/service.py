@@ -161,9 +161,10 @@ class Service:
             self.sources.start()
         if self.live is not None:
             self.live.open()
+        t_loop = time.monotonic()  # the run's length and rate count from here, not the warm-up
         try:
-            self.stats.period_start_s = t_start
-            self._loop(outputs, t_start)
+            self.stats.period_start_s = t_loop
+            self._loop(outputs, t_loop)
             self._finish(outputs)
         finally:
             self.notifier.stopping()
@@ -173,7 +174,7 @@ class Service:
             finally:
                 stop_times = self.sources.stop()
                 self.notifier.close()
-        return self._result(time.monotonic() - t_start, stop_times)
+        return self._result(time.monotonic() - t_loop, stop_times)
 
     def _loop(self, outputs: Output, t_start: float) -> None:
         deadline = None if self.seconds is None else t_start + self.seconds
