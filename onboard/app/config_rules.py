@@ -209,7 +209,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.accel_sd_m_s2": POSITIVE,
     "fusion.initial_speed_sd_m_s": POSITIVE,
     "fusion.gate_chi2": POSITIVE,
-    "fusion.rejoin_after_frames": POSITIVE,
+    "fusion.key_clones": POSITIVE,
     "fusion.nislam_var_scale": POSITIVE,
     "fusion.fastorb_var_scale": POSITIVE,
     "fusion.psr_full": NON_NEGATIVE,
