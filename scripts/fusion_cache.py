@@ -154,7 +154,8 @@ def main() -> None:
         out, stats, ms = fuse(cache, params)
         s = score(out, cache["groundtruth"])
         left = {n: sum(t["left_out"].values()) for n, t in stats["trackers"].items()}
-        print(_line(f"{name} fused", s) + f"  {ms:.2f} ms/frame  left out {left}")
+        nis = {n: None if t["nis_mean"] is None else round(t["nis_mean"], 1) for n, t in stats["trackers"].items()}
+        print(_line(f"{name} fused", s) + f"  {ms:.2f} ms/frame  left out {left}  NIS {nis}")
 
 
 if __name__ == "__main__":

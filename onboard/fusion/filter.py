@@ -70,12 +70,10 @@ class AnchoredFilter:
         if dt <= 0.0:
             return
         self.t_s = t_s
-        F = np.eye(6)
-        F[:3, 3:6] = np.eye(3) * dt
-        self.x[:6] = F @ self.x[:6]
-        P = self.P
-        P[:6, :] = F @ P[:6, :]
-        P[:, :6] = P[:, :6] @ F.T
+        self.x[:3] += dt * self.x[3:6]
+        P = self.P  # F P F^T with F = [I dt I; 0 I] on p, v: two row and two column operations
+        P[:3, :] += dt * P[3:6, :]
+        P[:, :3] += dt * P[:, 3:6]
         q = self.q
         P[:3, :3] += np.eye(3) * q * dt**3 / 3.0
         P[:3, 3:6] += np.eye(3) * q * dt**2 / 2.0
