@@ -155,7 +155,7 @@ def main() -> None:
         s = score(out, cache["groundtruth"])
         left = {n: sum(t["left_out"].values()) for n, t in stats["trackers"].items()}
         nis = {n: None if t["nis_mean"] is None else round(t["nis_mean"], 1) for n, t in stats["trackers"].items()}
-        print(_line(f"{name} fused", s) + f"  {ms:.2f} ms/frame  left out {left}  NIS {nis}")
+        print(_line(f"{name} fused", s) + f"  {ms:.2f} ms/frame  left out {left}  scale {stats['noise_scale']}")
 
 
 if __name__ == "__main__":

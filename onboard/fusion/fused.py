@@ -142,6 +142,8 @@ class FusedTracker:
         self._last_update_s: float | None = None
         self._R_W_C: np.ndarray | None = None
         self.reset_counter = 0
+        self.noise_scale = 1.0  # both trackers' covariances times this (_adapt)
+        self._nis_mean = 3.0
         self.frames = 0
         self.coasted = 0
         self.last_part_ms: dict[str, float] = {}
@@ -173,7 +175,8 @@ class FusedTracker:
                 "reanchored": dict(link.reanchors),
                 "nis_mean": link.nis_sum / link.nis_n if link.nis_n else None,
             }
-        return {"frames": self.frames, "frames_coasted": self.coasted, "trackers": per}
+        return {"frames": self.frames, "frames_coasted": self.coasted,
+                "noise_scale": round(self.noise_scale, 3), "trackers": per}
 
     # ------------------------------------------------------------- fusion
     def _fuse(self, t_s: float, results: list[TrackResult], attitude: AttitudeSource) -> TrackResult:
@@ -209,7 +212,7 @@ class FusedTracker:
                 left_out.append((link.name, why))
                 to_anchor.append((link, r, why))
                 continue
-            R = COVARIANCE_MODELS.get(link.name, COVARIANCE_MODELS["fastorb"])(r, self.p)
+            R = COVARIANCE_MODELS.get(link.name, COVARIANCE_MODELS["fastorb"])(r, self.p) * self.noise_scale
             if not np.all(np.isfinite(R)):
                 link.left_out["no covariance"] += 1
                 left_out.append((link.name, "no covariance"))
@@ -221,7 +224,9 @@ class FusedTracker:
         for link, r, *_ in measured:
             self._follow_axes(link, r, R_att)
         accepted, gated = self._gate(measured)
-        for link, r, z, R, nis, m in accepted:
+        for k, (link, r, z, R, nis, m) in enumerate(accepted):
+            if k == 1:
+                self._adapt(self.filter.nis(link.anchor_slot, z, R))
             self.filter.update(link.anchor_slot, z, R)
             link.used += 1
             link.nis_sum += nis
@@ -250,6 +255,23 @@ class FusedTracker:
         contributors = tuple(link.name for link, *_ in accepted)
         tied = [r for _, r, _ in to_anchor]
         return self._result(t_s, results, R_att, accepted, tied, contributors, tuple(left_out))
+
+    def _adapt(self, nis: float) -> None:
+        """Scale both trackers' covariances so that they agree with each
+        other as they claim (innovation-based adaptive estimation, Mehra
+        1972): the second tracker's motion, once the first has updated the
+        filter, is off by its own error and the first's, and its squared
+        Mahalanobis distance averages 3 (3 dof) when the covariances are
+        right. Their quality signals see the noise of a match, not what real
+        data adds (a depth sensor's distortion, a shutter's timing), which on
+        tum_fr1_rpy is several times larger. A slow step towards the scale
+        that makes the mean 3; never below 1 (the signals' own figures)."""
+        if not math.isfinite(nis):
+            return
+        g = self.p.noise_adapt_gain
+        self._nis_mean += g * (min(nis, 10.0 * self.p.gate_chi2) - self._nis_mean)
+        self.noise_scale = float(np.clip(self.noise_scale * (self._nis_mean / 3.0) ** g,
+                                          1.0, self.p.noise_scale_max))
 
     def _reference(self, link: _Link, r: TrackResult, m: np.ndarray, ref: tuple[int, int],
                    keyed: bool) -> str | None:

@@ -21,6 +21,8 @@ class FusionParams:
     # prediction (3 dof) exceeds this is left out (12: chi-square 99.3 %).
     gate_chi2: float = 12.0
     key_clones: int = 24  # fused positions of a tracker's keys kept for it to come back to
+    noise_adapt_gain: float = 0.02  # per frame both trackers measure: step of the covariance scale (fused._adapt)
+    noise_scale_max: float = 100.0  # ... up to this many times their own figures
     # Measurement noise (onboard.fusion.measurements), scaled; the defaults put
     # the reported 1 sigma over 55-81 % of the error on the synthetic flights.
     nislam_var_scale: float = 1.0
