@@ -68,7 +68,7 @@ class _Cached:
         self.name = name
         self._it = iter(results)
 
-    def track(self, frame, attitude):  # noqa: ANN001, ANN201
+    def track(self, frame, attitude):
         return next(self._it)
 
     def finish(self) -> None:
@@ -85,7 +85,7 @@ class _Seq:
     groundtruth: object
 
 
-def score(results: list, gt) -> dict[str, float | None]:  # noqa: ANN001
+def score(results: list, gt) -> dict[str, float | None]:
     log = TrackLog()
     for r in results:
         log.frame_ms.append(0.0)
@@ -154,7 +154,6 @@ def main() -> None:
         out, stats, ms = fuse(cache, params)
         s = score(out, cache["groundtruth"])
         left = {n: sum(t["left_out"].values()) for n, t in stats["trackers"].items()}
-        nis = {n: None if t["nis_mean"] is None else round(t["nis_mean"], 1) for n, t in stats["trackers"].items()}
         print(_line(f"{name} fused", s) + f"  {ms:.2f} ms/frame  left out {left}  scale {stats['noise_scale']}")
 
 

@@ -192,9 +192,9 @@ class KeyedTracker:
         return None
 
 
-def run_keyed(params: FusionParams = FusionParams()) -> tuple[FusedTracker, list[TrackResult]]:
+def run_keyed(params: FusionParams | None = None) -> tuple[FusedTracker, list[TrackResult]]:
     nislam = KeyedTracker(np.array([0.04, 0.0, 0.0]))
-    fused = FusedTracker([nislam, Scripted("fastorb", lambda i: None, 2)], params)
+    fused = FusedTracker([nislam, Scripted("fastorb", lambda i: None, 2)], params or FusionParams())
     img, depth = np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4), np.float32)
     return fused, [fused.track(RgbdFrame(i * DT, img, depth), Attitude()) for i in range(100)]
 
