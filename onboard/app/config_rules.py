@@ -211,6 +211,8 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.initial_speed_sd_m_s": POSITIVE,
     "fusion.gate_chi2": POSITIVE,
     "fusion.key_clones": POSITIVE,
+    "fusion.noise_adapt_gain": FRACTION,
+    "fusion.noise_scale_max": Range(lo=1.0),
     "fusion.nislam_var_scale": POSITIVE,
     "fusion.fastorb_var_scale": POSITIVE,
     "fusion.psr_full": NON_NEGATIVE,
