@@ -205,6 +205,7 @@ class NislamTracker:
             finished_keyframes=tuple(finished),
             keyframe_reused=reused,
             reference_keyframe_id=key.keyframe_id,
+            reference_offset_m=outcome.p_W_m - key.p_W_m,
         )
 
     def _count_jump(self, p_W_m: np.ndarray, t_s: float) -> None:
@@ -386,6 +387,7 @@ class NislamTracker:
             matched_cells=0,
             finished_keyframes=tuple(finished),
             reference_keyframe_id=self._key.keyframe_id,
+            reference_offset_m=np.zeros(3),
         )
 
     def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
