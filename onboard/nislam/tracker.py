@@ -133,7 +133,7 @@ class NislamTracker:
         if self.p.rolling_shutter_readout_s != 0.0:
             # Rows exposed one after another: each brought to the middle row's
             # instant, the one the attitude is looked up at (nislam/shutter.py).
-            w = body_rate(attitude, t_att, self.p.rate_half_window_s)
+            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
             if w is not None:
                 cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
                                               self.intr.height, self.p.pixel_stride)
