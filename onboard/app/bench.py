@@ -72,7 +72,8 @@ def bench(
     """Per-frame `track()` times over the sequence, `repeat` passes with a
     fresh tracker each (so every pass includes the same key-frame work)."""
     pin_one_core()
-    seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
+    seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
+                        cfg.replay.stamp_window_s)
     attitude, _label = attitude_for_replay(
         seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s
     )
