@@ -194,12 +194,15 @@ def track_sequence(
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     frames = islice(seq.frames(), max_frames)
     backend_step = getattr(tracker, "backend_step", None)
+    finish_frame = getattr(tracker, "finish_frame", None)  # its work for the next frames
     # disable=None lets tqdm switch itself off when stderr is not a terminal.
     with tqdm(frames, total=total, unit="frame", desc=seq.path.name, file=sys.stderr,
               disable=None if progress else True) as bar:
         for frame in bar:
             t0 = time.perf_counter()
             result = tracker.track(frame, attitude)
+            if finish_frame is not None:  # timed with track(): the frame's whole cost
+                finish_frame()
             out.frame_ms.append((time.perf_counter() - t0) * 1e3)
             if backend_step is not None:  # one unit of back-end work in the frame's idle time
                 t0 = time.perf_counter()
