@@ -44,6 +44,7 @@ from onboard.nislam.projection import (
     make_cloud,
     project,
 )
+from onboard.nislam.shutter import rolling_shutter_cloud
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +143,13 @@ class NislamTracker:
             frame.bgr, frame.depth_m, self.intr, self.p.min_depth_m, self.p.max_depth_m,
             self.p.pixel_stride, r_cd,
         )
+        if self.p.rolling_shutter_readout_s != 0.0:
+            # Rows exposed one after another: each brought to the middle row's
+            # instant, the one the attitude is looked up at (nislam/shutter.py).
+            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
+            if w is not None:
+                cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
+                                              self.intr.height, self.p.pixel_stride)
         min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
         if len(cloud) < min_points:
             return self._lost_result(frame.t_s, "too few depth pixels")
