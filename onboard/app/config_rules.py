@@ -191,6 +191,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.lam": POSITIVE,  # ridge term of Eq. 12: 0 divides by the kernel spectrum alone
     "nislam.label_sigma_cells": NON_NEGATIVE,  # 0 = the paper's delta label
     "nislam.rate_half_window_s": POSITIVE,
+    "nislam.attitude_sd_deg": NON_NEGATIVE,
     "nislam.search_radius_m": NON_NEGATIVE,
     "nislam.search_speed_m_s": NON_NEGATIVE,
     "nislam.max_coast_s": NON_NEGATIVE,

@@ -119,6 +119,9 @@ class TrackResult:
     # not known). Unlike p_W_m it does not move when the tracker refines or
     # re-uses keys, so the fused tracker can tell motion from a key's correction.
     reference_offset_m: np.ndarray | None = None
+    # NI-SLAM: the variance [m^2] the AHRS's attitude noise adds to each lateral
+    # axis of the key's view (onboard.nislam.attitude_var; included in pose_var).
+    attitude_var_m2: float = 0.0
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

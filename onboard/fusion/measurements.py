@@ -23,6 +23,9 @@ image and in depth, give a better-conditioned H. Below `fastorb_full_inliers`
 inliers it grows as (fastorb_full_inliers / inliers)^2: with few points a
 wrong one moves the pose more than the Hessian says.
 
+NI-SLAM's x and y also carry the attitude's own error, `attitude_var_m2`:
+the AHRS's white noise times the matched cells' depth (onboard.nislam.attitude_var).
+
 Both are then scaled by `*_var_scale` and floored at `min_sd_m` per axis.
 """
 
@@ -46,6 +49,8 @@ def nislam_cov(r: TrackResult, p: FusionParams) -> np.ndarray:
     var_z = _key_depth_scatter(r.pose_var[:3], R)
     samples = max(r.matched_cells / p.nislam_cells_per_sample, 1.0)
     var_key = np.array([sd_xy**2, sd_xy**2, var_z / samples]) * p.nislam_var_scale
+    # The AHRS's attitude noise moves the peak by depth x error (onboard.nislam.attitude_var).
+    var_key[:2] += r.attitude_var_m2
     var_key = np.maximum(var_key, p.min_sd_m**2)
     return R @ np.diag(var_key) @ R.T
 

@@ -11,6 +11,8 @@ application's configuration (which reads `TRACKER_NAMES` from here).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable
 from typing import Protocol
 
@@ -39,7 +41,13 @@ class TrackerSections(Protocol):
 def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     from onboard.nislam.tracker import NislamTracker
 
-    return NislamTracker(intrinsics, cfg.nislam)
+    # Noise a replay adds to the attitude (`--attitude-noise-deg`, [attitude]
+    # noise_deg) comes on top of the AHRS's own: independent, in quadrature.
+    params = cfg.nislam
+    added = getattr(getattr(cfg, "attitude", None), "noise_deg", 0.0)
+    if added > 0.0:
+        params = dataclasses.replace(params, attitude_sd_deg=math.hypot(params.attitude_sd_deg, added))
+    return NislamTracker(intrinsics, params)
 
 
 def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:

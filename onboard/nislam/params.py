@@ -66,3 +66,9 @@ class NislamParams:
     time_offset_max_s: float = 0.1
     time_offset_forget: float = 0.999  # per-update forgetting: a hardware constant, ~1000 updates of memory
     rate_half_window_s: float = 0.02  # angular rate from attitude at t +- this
+    # White-noise sd of the AHRS attitude per axis [deg]: the reported lateral
+    # variance grows by 2 (depth x sd)^2 (onboard/nislam/attitude_var.py).
+    # 0.1: myAHRS+ class (the simulator's `myahrs` profile); 0.05 for an
+    # autopilot's EKF attitude; 0 for an exact attitude. A replay adding
+    # `--attitude-noise-deg N` adds N in quadrature (onboard.fusion.registry).
+    attitude_sd_deg: float = 0.1

@@ -30,6 +30,7 @@ import numpy as np
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
 from onboard.nislam import kernels as kern
+from onboard.nislam.attitude_var import attitude_lateral_var_m2, with_attitude_var
 from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate, overlap
 from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
 from onboard.nislam.deferred import Deferred
@@ -191,13 +192,14 @@ class NislamTracker:
             key_id = self._next_key_id
             prev = self._prev
             self._deferred.add(None, lambda: self._new_key_from(prev, hand_over=False))
+        att_var = attitude_lateral_var_m2(outcome.depth.z_mean_m, self.p.attitude_sd_deg)
         return TrackResult(
             t_s=frame.t_s,
             state=TrackState.TRACKING,
             trusted=True,
             p_W_m=outcome.p_W_m,
             R_W_C=r_cur,
-            pose_var=outcome.pose_var,
+            pose_var=with_attitude_var(outcome.pose_var, key.R_W_C, att_var),
             quality=self._quality(peak.psr),
             psr=peak.psr,
             keyframe_id=key_id,
@@ -214,6 +216,7 @@ class NislamTracker:
             keyframe_reused=reused,
             reference_keyframe_id=key.keyframe_id,
             reference_offset_m=outcome.p_W_m - key.p_W_m,
+            attitude_var_m2=att_var,
         )
 
     def _count_jump(self, p_W_m: np.ndarray, t_s: float) -> None:
