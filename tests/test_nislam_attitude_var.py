@@ -12,7 +12,7 @@ import numpy as np
 from test_nislam import INTR, Scene, _params, _track_poses
 
 from onboard.core.messages import TrackResult
-from onboard.fusion.measurements import nislam_cov
+from onboard.fusion.measurements import key_attitude_cov, nislam_cov
 from onboard.fusion.params import FusionParams
 from onboard.fusion.registry import _make_nislam
 from onboard.nislam.attitude_var import attitude_lateral_var_m2, with_attitude_var
@@ -37,7 +37,8 @@ def test_the_optical_axis_gets_none_of_it():
     base = np.array([1e-6, 2e-6, 3e-6, 1e-5, 1e-5, 1e-5])
     out = with_attitude_var(base, R_ALONG_X, 4e-4)
     np.testing.assert_allclose(out - base, [0.0, 4e-4, 4e-4, 0.0, 0.0, 0.0], atol=1e-15)
-    # the fused filter's measurement covariance: the same, in the key's axes
+    # the fused filter: the frame's half white in the measurement, the key's
+    # half on the key's clone; both in the key's lateral axes only
     r = TrackResult(
         t_s=0.0, state=None, trusted=True, p_W_m=np.zeros(3), R_W_C=R_ALONG_X, pose_var=base,
         quality=50, psr=80.0, keyframe_id=0, new_keyframe=False, reset_counter=0, lost_reason=None,
@@ -46,7 +47,9 @@ def test_the_optical_axis_gets_none_of_it():
     )
     p = FusionParams()
     grown = np.diag(nislam_cov(dataclasses.replace(r, attitude_var_m2=4e-4), p)) - np.diag(nislam_cov(r, p))
-    np.testing.assert_allclose(grown, [0.0, 4e-4, 4e-4], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(grown, [0.0, 2e-4, 2e-4], rtol=1e-9, atol=1e-15)
+    key = key_attitude_cov(dataclasses.replace(r, attitude_var_m2=4e-4))
+    np.testing.assert_allclose(np.diag(key), [0.0, 2e-4, 2e-4], atol=1e-15)
 
 
 def test_tracker_reports_it_without_moving_its_poses():

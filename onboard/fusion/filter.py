@@ -115,6 +115,12 @@ class AnchoredFilter:
         """a_dst := a_src (the same clone in another slot)."""
         self._clone(self._sl(src), self._sl(dst))
 
+    def widen(self, i: int, Q: np.ndarray) -> None:
+        """a_i += an independent error of covariance Q (one that every
+        measurement against this anchor shares, e.g. its key's attitude error)."""
+        s = self._sl(i)
+        self.P[s, s] += Q
+
     def forget(self, i: int) -> None:
         """Slot i no longer used: no state, no correlation."""
         s = self._sl(i)

@@ -59,7 +59,7 @@ from scipy.spatial.transform import Rotation
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Tracker, TrackResult, TrackState
 from onboard.core.rotations import so3_log
 from onboard.fusion.filter import AnchoredFilter
-from onboard.fusion.measurements import COVARIANCE_MODELS
+from onboard.fusion.measurements import COVARIANCE_MODELS, key_attitude_cov
 from onboard.fusion.params import FusionParams
 
 log = logging.getLogger(__name__)
@@ -310,6 +310,8 @@ class FusedTracker:
                 return "restarted" if restarted else "key re-used"
             slot = self._key_slot(link, key)
             self.filter.copy(link.last_slot, slot)
+            if link.name == "nislam":
+                self.filter.widen(slot, key_attitude_cov(r))
             link.anchor_slot, link.o, link.p_anchor, link.ref = slot, np.zeros(3), link.p_last.copy(), ref
             link.keys[key] = (slot, link.o, link.p_anchor)
             return None

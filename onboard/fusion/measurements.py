@@ -24,7 +24,9 @@ inliers it grows as (fastorb_full_inliers / inliers)^2: with few points a
 wrong one moves the pose more than the Hessian says.
 
 NI-SLAM's x and y also carry the attitude's own error, `attitude_var_m2`:
-the AHRS's white noise times the matched cells' depth (onboard.nislam.attitude_var).
+the AHRS's white noise times the matched cells' depth (onboard.nislam.attitude_var),
+half from the frame's attitude (white, here) and half from the key's (the
+same for all frames on that key: it widens the key's clone, key_attitude_cov).
 
 Both are then scaled by `*_var_scale` and floored at `min_sd_m` per axis.
 """
@@ -49,10 +51,22 @@ def nislam_cov(r: TrackResult, p: FusionParams) -> np.ndarray:
     var_z = _key_depth_scatter(r.pose_var[:3], R)
     samples = max(r.matched_cells / p.nislam_cells_per_sample, 1.0)
     var_key = np.array([sd_xy**2, sd_xy**2, var_z / samples]) * p.nislam_var_scale
-    # The AHRS's attitude noise moves the peak by depth x error (onboard.nislam.attitude_var).
-    var_key[:2] += r.attitude_var_m2
+    # The AHRS's attitude noise moves the peak by depth x error (onboard.nislam.attitude_var):
+    # the frame's half here, white; the key's half is shared by every frame on
+    # that key, so it widens the key's clone instead (key_attitude_cov).
+    var_key[:2] += 0.5 * r.attitude_var_m2
     var_key = np.maximum(var_key, p.min_sd_m**2)
     return R @ np.diag(var_key) @ R.T
+
+
+def key_attitude_cov(r: TrackResult) -> np.ndarray:
+    """3x3 (W): the key's share of NI-SLAM's attitude term, the same error in
+    every frame matched against that key (its attitude is looked up once per
+    key time), so a bias of the key's clone rather than white noise: treated
+    as white the filter would average it away over the key's frames."""
+    R = np.asarray(r.R_W_C, dtype=np.float64)
+    a = 0.5 * r.attitude_var_m2 if math.isfinite(r.attitude_var_m2) else 0.0
+    return R @ np.diag([a, a, 0.0]) @ R.T
 
 
 def _key_depth_scatter(var_W: np.ndarray, R: np.ndarray) -> float:
