@@ -114,6 +114,9 @@ class TrackResult:
     # frame's pose used, and (tracker, why) for each one left out.
     contributors: tuple[str, ...] = ()
     left_out: tuple[tuple[str, str], ...] = ()
+    # Loop closures that moved the map so far (FastORB): the pose jumps when
+    # this goes up, as after a reset; the MAVLink feed announces it so.
+    loop_corrections: int = 0
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:
