@@ -117,6 +117,9 @@ class TrackResult:
     # Loop closures that moved the map so far (FastORB): the pose jumps when
     # this goes up, as after a reset; the MAVLink feed announces it so.
     loop_corrections: int = 0
+    # Key frames a loop closure moved, (id, p_W_m, R_W_C) each, on the first
+    # result after it: the map's consumers re-place them (zenoh re-publishes).
+    moved_keyframes: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

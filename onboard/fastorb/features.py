@@ -146,6 +146,7 @@ def outcome_result(
     reset_counter: int,
     full_quality_inliers: int,
     loop_corrections: int = 0,
+    moved_keyframes: tuple[tuple[int, np.ndarray, np.ndarray], ...] = (),
 ) -> TrackResult:
     """The tracker's result for a frame: a pose (trusted) with `outcome`, else none."""
     if outcome is None:
@@ -177,6 +178,7 @@ def outcome_result(
         matched_cells=n_in,  # PnP inliers
         finished_keyframes=finished,
         loop_corrections=loop_corrections,
+        moved_keyframes=moved_keyframes,
     )
 
 

@@ -99,6 +99,7 @@ class LoopClosing:
         self._loops: list[tuple[int, int, np.ndarray]] = []
         self._pending: deque[int] = deque()
         self._last_loop = -(10**9)  # record index of the last corrected key frame
+        self._moved: dict[int, np.ndarray] = {}  # key frame id -> T_cw, not yet reported
 
     @property
     def idle(self) -> bool:
@@ -111,6 +112,13 @@ class LoopClosing:
                 return kf.T_cw
         k = self._index.get(keyframe_id)
         return None if k is None else self._records[k].T_cw
+
+    def result_fields(self) -> tuple[int, tuple[tuple[int, np.ndarray, np.ndarray], ...]]:
+        """TrackResult's loop_corrections and moved_keyframes (each moved key
+        frame reported once, on the next result)."""
+        moved = tuple((k, *camera_in_world(T)) for k, T in sorted(self._moved.items()))
+        self._moved = {}
+        return self.stats.corrections, moved
 
     def on_keyframe(self, kf: Keyframe) -> None:
         prev = self._records[-1] if self._records else None
@@ -226,6 +234,8 @@ class LoopClosing:
         moves = np.array([inverse(T_new[k]) @ T_old[k] for k in range(len(recs))])  # world motions
         for k, r in enumerate(recs):
             r.T_cw = T_new[k]
+            if np.abs(moves[k] - np.eye(4)).max() > 1e-4:  # ~0.1 mm / 0.006 deg
+                self._moved[r.keyframe_id] = T_new[k]
         live = self._map.keyframes()
         slots = [self._index.get(kf.keyframe_id, len(recs) - 1) for kf in live]
         for kf, k in zip(live, slots):

@@ -495,4 +495,4 @@ class FastOrbTracker:
         return outcome_result(t_s, state, outcome, reason, new_key, finished,
                               -1 if kf is None else kf.keyframe_id, self._reset_counter,
                               self.p.redetect_min_inliers,
-                              self.loops.stats.corrections)
+                              *self.loops.result_fields())
