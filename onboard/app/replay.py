@@ -270,6 +270,9 @@ def _backend_metrics(tracker: Tracker, track_log: TrackLog, seq: Sequence,
         "loops_detected": None if stats is None else stats.detected,
         "loops_accepted": None if stats is None else stats.accepted,
         "loop_corrections": None if stats is None else stats.corrections,
+        "loop_query_ms_median": _median(None if stats is None else stats.query_ms),
+        "loop_query_ms_max": None if stats is None or not stats.query_ms else max(stats.query_ms),
+        "loop_correct_ms_median": _median(None if stats is None else stats.correct_ms),
         "ate_final_rmse_m": None,
     }
     if track_log.anchors is None or seq.groundtruth is None or not track_log.t_s:
@@ -280,6 +283,10 @@ def _backend_metrics(tracker: Tracker, track_log: TrackLog, seq: Sequence,
         m = evaluate(est.slice_valid(valid), gt, rpe_delta_s=RPE_DELTA_S)
         out["ate_final_rmse_m"] = m.ate_rmse_m
     return out
+
+
+def _median(values: list[float] | None) -> float | None:
+    return None if not values else float(np.median(values))
 
 
 def _coverage(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> float | None:

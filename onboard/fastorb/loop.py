@@ -45,7 +45,7 @@ from onboard.core.rotations import so3_log
 from onboard.core.se3 import camera_in_world, inverse
 from onboard.fastorb.local_map import Keyframe, LocalMap
 from onboard.fastorb.mapping import Correction
-from onboard.fastorb.place import KeyRecord, PlaceSettings, Verified, verify, vote
+from onboard.fastorb.place import KeyRecord, PlaceIndex, PlaceSettings, Verified, verify
 from onboard.fastorb.posegraph import Edge, optimise, relative
 
 log = logging.getLogger(__name__)
@@ -92,9 +92,8 @@ class LoopClosing:
         """A new map: nothing of the old one can close a loop with it."""
         self._records: list[KeyRecord] = []
         self._index: dict[int, int] = {}
-        self._desc: list[np.ndarray] = []
-        self._pool: tuple[int, np.ndarray, np.ndarray] = (0, np.zeros((0, 32), np.uint8),
-                                                          np.zeros(0, np.int64))
+        self._index_words: list[np.ndarray] = []
+        self._places = PlaceIndex(self.s.place)
         self._strong: list[tuple[int, int]] = []
         self._loops: list[tuple[int, int, np.ndarray]] = []
         self._pending: deque[int] = deque()
@@ -132,7 +131,9 @@ class LoopClosing:
                 self._strong.append((i, k))
         self._records.append(rec)
         self._index[kf.keyframe_id] = k
-        self._desc.append(rec.desc)
+        words = self._places.words(rec.desc)
+        self._places.add(words)
+        self._index_words.append(words)
         if self.enabled:
             self._pending.append(kf.keyframe_id)
 
@@ -173,11 +174,13 @@ class LoopClosing:
             return None
         self.stats.queries += 1
         q = self._records[j]
-        pool, owner = self._pooled(n)
-        votes = vote(q.desc, pool, owner, n, s.place.max_hamming)
-        cands = [int(i) for i in np.argsort(-votes, kind="stable")[: 3 * s.place.candidates]
-                 if votes[i] >= s.place.min_votes
-                 and np.isin(self._records[i].ids, q.ids).sum() < s.min_shared]
+        scores = self._places.scores(self._index_words[j], j)
+        # As ORB-SLAM2: a candidate must look at least as much like the query
+        # as the least similar of its covisible recent key frames does.
+        near = [k for k in range(n, j) if self._shared(k, j) >= s.min_shared]
+        floor = max(s.place.min_score, min((scores[k] for k in near), default=0.0))
+        cands = [int(i) for i in np.argsort(-scores[:n], kind="stable")[: 3 * s.place.candidates]
+                 if scores[i] >= floor and self._shared(int(i), j) < s.min_shared]
         if not cands:
             return None
         self.stats.candidates += 1
@@ -196,16 +199,8 @@ class LoopClosing:
                      self._records[i].keyframe_id, shift, turn, path)
         return None
 
-    def _pooled(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Descriptors of records [0, n) in one array, and each one's record."""
-        have, desc, owner = self._pool
-        if have < n:
-            desc = np.concatenate([desc] + self._desc[have:n])
-            owner = np.concatenate([owner] + [np.full(len(d), k, np.int64)
-                                              for k, d in enumerate(self._desc[have:n], have)])
-            self._pool = (n, desc, owner)
-        end = int(np.searchsorted(owner, n))
-        return desc[:end], owner[:end]
+    def _shared(self, a: int, b: int) -> int:
+        return int(np.isin(self._records[a].ids, self._records[b].ids).sum())
 
     def _mismatch(self, i: int, j: int, v: Verified) -> tuple[float, float]:
         """How far (m, deg) the loop says key frame j is from where the map has it."""
