@@ -141,7 +141,10 @@ def verify(cand: KeyRecord, query: KeyRecord, s: PlaceSettings,
     # Two depth readings, each sd k z^2; 3 sd of their difference, plus a floor.
     gate2 = (s.inlier_floor_m + 3.0 * np.sqrt(2.0) * s.depth_sd * P[:, 2] ** 2) ** 2
     best = np.zeros(len(P), bool)
-    for _ in range(s.ransac_iterations):
+    needed = s.ransac_iterations
+    it = 0
+    while it < needed:
+        it += 1
         pick = rng.choice(len(P), 3, replace=False)
         if np.linalg.matrix_rank(P[pick] - P[pick].mean(0), tol=1e-2) < 2:
             continue  # (nearly) collinear: no rotation from it
@@ -149,6 +152,10 @@ def verify(cand: KeyRecord, query: KeyRecord, s: PlaceSettings,
         inl = np.sum((Q @ R.T + t - P) ** 2, axis=1) <= gate2
         if inl.sum() > best.sum():
             best = inl
+            # Adaptive stop (Hartley and Zisserman, Sec. 4.7.1): enough samples
+            # for a 99.9 % chance that one was all inliers.
+            w3 = min((best.sum() / len(P)) ** 3, 1.0 - 1e-9)
+            needed = min(s.ransac_iterations, int(np.ceil(np.log(1e-3) / np.log(1.0 - w3))))
     for _ in range(2):  # refit on the inliers, take the inliers of the refit
         if best.sum() < max(s.min_inliers, 3):
             return None
