@@ -157,3 +157,15 @@ def test_verify_recovers_the_relative_pose() -> None:
     err = inverse(T_ij) @ v.T_ij
     assert np.linalg.norm(err[:3, 3]) < 0.01
     assert np.degrees(np.linalg.norm(Rotation.from_matrix(err[:3, :3]).as_rotvec())) < 0.2
+
+
+def test_no_loop_closure_switch_reaches_the_tracker_parameters() -> None:
+    """`--no-loop-closure` (replay, bench) sets [fastorb] loop_closure = false."""
+    import argparse
+
+    from onboard.app.cli_tracking import _overrides
+    from onboard.app.config import load_config
+
+    assert load_config(None).fastorb.loop_closure
+    off = load_config(None, _overrides(argparse.Namespace(no_loop_closure=True)), "command line")
+    assert not off.fastorb.loop_closure
