@@ -73,7 +73,7 @@ def test_a_drifted_loop_is_found_and_closed() -> None:
     return). Landmarks seen again after the turn get new ids (the local map
     forgot them). Loop closing accepts a loop at the return, and the
     key-frame ATE drops to under half of the drifted one; switched off, it
-    neither queries nor moves anything."""
+    neither queries nor moves anything. Key frames are 0.1 s apart."""
     rng = np.random.default_rng(3)
     n_lm = 1500
     side = rng.integers(0, 4, n_lm)
@@ -107,7 +107,9 @@ def test_a_drifted_loop_is_found_and_closed() -> None:
         while not loops.idle:
             loops.step()
     drifted = _ate(drifted_est, truth)
-    assert loops.stats.accepted >= 1 and loops.stats.corrections >= 1, loops.stats
+    # one correction: the later loops (the odometry keeps drifting) wait as
+    # edges, since corrections are resets for the autopilot (min_interval_s)
+    assert loops.stats.accepted >= 2 and loops.stats.corrections == 1, loops.stats
     closed = _ate([loops.pose_of(k.keyframe_id) for k in kfs], truth)
     assert drifted > 0.1 and closed < 0.5 * drifted, (drifted, closed)
     off = _run(kfs, enabled=False)

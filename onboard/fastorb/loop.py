@@ -63,6 +63,9 @@ class LoopSettings:
     min_correction_m: float = 0.005  # smaller (and min_correction_deg) : an edge, no solve
     min_correction_deg: float = 0.3
     after_loop: int = 10  # key frames not queried after a correction (ORB-SLAM2: 10)
+    # Each correction is a reset for the flight controller (docs/autopilot.md):
+    # at most one per this time; loops found in between wait as edges.
+    min_interval_s: float = 3.0
     edge_sigma: float = 0.01  # every essential-graph edge alike, rad and m (ORB-SLAM2: identity)
     place: PlaceSettings = PlaceSettings()
 
@@ -92,12 +95,14 @@ class LoopClosing:
         """A new map: nothing of the old one can close a loop with it."""
         self._records: list[KeyRecord] = []
         self._index: dict[int, int] = {}
+        self._times: dict[int, float] = {}
         self._index_words: list[np.ndarray] = []
         self._places = PlaceIndex(self.s.place)
         self._strong: list[tuple[int, int]] = []
         self._loops: list[tuple[int, int, np.ndarray]] = []
         self._pending: deque[int] = deque()
         self._last_loop = -(10**9)  # record index of the last corrected key frame
+        self._last_t_s = -np.inf  # its time
         self._moved: dict[int, np.ndarray] = {}  # key frame id -> T_cw, not yet reported
 
     @property
@@ -131,6 +136,7 @@ class LoopClosing:
                 self._strong.append((i, k))
         self._records.append(rec)
         self._index[kf.keyframe_id] = k
+        self._times[kf.keyframe_id] = kf.t_s
         words = self._places.words(rec.desc)
         self._places.add(words)
         self._index_words.append(words)
@@ -159,6 +165,10 @@ class LoopClosing:
                  v.matches, shift, turn)
         if shift < self.s.min_correction_m and turn < self.s.min_correction_deg:
             return None
+        t_s = self._times[self._records[j].keyframe_id]
+        if t_s - self._last_t_s < self.s.min_interval_s:
+            return None  # the edge waits for the next correction
+        self._last_t_s = t_s
         t1 = time.perf_counter()
         correction = self._correct(i, v)
         self._last_loop = j
