@@ -125,23 +125,30 @@ class LoopClosing:
         return self.stats.corrections, moved
 
     def on_keyframe(self, kf: Keyframe) -> None:
+        """Keep the new key frame (called from tracking: only what costs
+        nothing; hashing and covisibility wait for `step`)."""
         prev = self._records[-1] if self._records else None
         path = 0.0 if prev is None else prev.path_m + float(np.linalg.norm(
             camera_in_world(kf.T_cw)[0] - camera_in_world(prev.T_cw)[0]))
         p_C = kf.xyz_W @ kf.T_cw[:3, :3].T + kf.T_cw[:3, 3]
-        rec = KeyRecord(kf.keyframe_id, kf.T_cw.copy(), kf.desc.copy(), p_C, kf.ids.copy(), path)
-        k = len(self._records)
-        for i in range(max(0, k - self.s.min_gap), k):  # strong covisibility, recent ones only
-            if np.isin(self._records[i].ids, rec.ids).sum() >= self.s.strong_shared:
-                self._strong.append((i, k))
+        # The key frame's arrays are replaced, never written in place: no copies.
+        rec = KeyRecord(kf.keyframe_id, kf.T_cw, kf.desc, p_C, kf.ids, path)
+        self._index[kf.keyframe_id] = len(self._records)
         self._records.append(rec)
-        self._index[kf.keyframe_id] = k
         self._times[kf.keyframe_id] = kf.t_s
+        if self.enabled:
+            self._pending.append(kf.keyframe_id)
+
+    def _take_in(self, k: int) -> None:
+        """Record k (the next in order) into the place index and the strong
+        covisibility links with the recent ones."""
+        rec = self._records[k]
+        for i in range(max(0, k - self.s.min_gap), k):
+            if self._shared(i, k) >= self.s.strong_shared:
+                self._strong.append((i, k))
         words = self._places.words(rec.desc)
         self._places.add(words)
         self._index_words.append(words)
-        if self.enabled:
-            self._pending.append(kf.keyframe_id)
 
     def step(self) -> Correction | None:
         """Query one waiting key frame; a correction when a loop moved the map."""
@@ -151,6 +158,7 @@ class LoopClosing:
         j = self._index.get(self._pending.popleft())
         if j is None:
             return None
+        self._take_in(j)
         self._refresh_poses()
         found = self._detect(j)
         self.stats.query_ms.append((time.perf_counter() - t0) * 1e3)
