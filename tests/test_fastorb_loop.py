@@ -51,7 +51,7 @@ def _keyframe(kf_id: int, T_true: np.ndarray, T_est: np.ndarray, xyz: np.ndarray
 
 def _run(kfs: list[Keyframe], enabled: bool = True, min_gap: int = 20) -> LoopClosing:
     local = LocalMap(max_keyframes=10, local=5)  # forgets: the loop must be found again
-    loops = LoopClosing(local, LoopSettings(min_gap=min_gap), enabled=enabled)
+    loops = LoopClosing(local, K, LoopSettings(min_gap=min_gap), enabled=enabled)
     for kf in kfs:
         local.add(kf)
         loops.on_keyframe(kf)
@@ -86,7 +86,7 @@ def test_a_drifted_loop_is_found_and_closed() -> None:
     n_turn = 48
     truth, drifted_est = [], []
     local = LocalMap(max_keyframes=10, local=5)  # forgets: the loop must be found again
-    loops = LoopClosing(local)
+    loops = LoopClosing(local, K)
     kfs = []
     for k in range(int(1.3 * n_turn)):
         a = 2 * np.pi * k / n_turn

@@ -82,9 +82,10 @@ class LoopStats:
 
 
 class LoopClosing:
-    def __init__(self, local_map: LocalMap, s: LoopSettings = LoopSettings(),
+    def __init__(self, local_map: LocalMap, K: np.ndarray, s: LoopSettings = LoopSettings(),
                  enabled: bool = True):
         self._map = local_map
+        self._K = K
         self.s = s
         self.enabled = enabled  # off: key frames are recorded (their poses), never queried
         self.stats = LoopStats()
@@ -132,7 +133,7 @@ class LoopClosing:
             camera_in_world(kf.T_cw)[0] - camera_in_world(prev.T_cw)[0]))
         p_C = kf.xyz_W @ kf.T_cw[:3, :3].T + kf.T_cw[:3, 3]
         # The key frame's arrays are replaced, never written in place: no copies.
-        rec = KeyRecord(kf.keyframe_id, kf.T_cw, kf.desc, p_C, kf.ids, path)
+        rec = KeyRecord(kf.keyframe_id, kf.T_cw, kf.desc, p_C, kf.ids, path, kf.uv)
         self._index[kf.keyframe_id] = len(self._records)
         self._records.append(rec)
         self._times[kf.keyframe_id] = kf.t_s
@@ -203,7 +204,7 @@ class LoopClosing:
             return None
         self.stats.candidates += 1
         for i in cands[: s.place.candidates]:
-            v = verify(self._records[i], q, s.place, self._rng)
+            v = verify(self._records[i], q, s.place, self._rng, self._K)
             if v is None:
                 continue
             self.stats.detected += 1

@@ -87,7 +87,7 @@ class FastOrbTracker:
             self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m),
             MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes),
         ) if p.local_ba else None
-        self.loops = LoopClosing(self._map, LoopSettings(place=PlaceSettings(
+        self.loops = LoopClosing(self._map, self.K, LoopSettings(place=PlaceSettings(
             depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure)
         self.keyframe_pose = self.loops.pose_of  # a key frame's T_cw now (final trajectory)
         self._state = TrackState.INITIALIZING
