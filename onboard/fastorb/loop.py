@@ -42,13 +42,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from onboard.core.rotations import so3_log
-from onboard.core.se3 import camera_in_world, inverse
+from onboard.core.se3 import camera_in_world, inverse, se3_log
 from onboard.fastorb.local_map import Keyframe, LocalMap
 from onboard.fastorb.mapping import Correction
+from onboard.fastorb.pose import PnpSettings
 from onboard.fastorb.place import KeyRecord, PlaceIndex, PlaceSettings, Verified, verify
 from onboard.fastorb.posegraph import Edge, optimise, relative
 
 log = logging.getLogger(__name__)
+
+CHI2_6DOF_99 = 16.81
 
 
 @dataclass(frozen=True)
@@ -83,9 +86,10 @@ class LoopStats:
 
 class LoopClosing:
     def __init__(self, local_map: LocalMap, K: np.ndarray, s: LoopSettings = LoopSettings(),
-                 enabled: bool = True):
+                 enabled: bool = True, pnp: PnpSettings | None = None):
         self._map = local_map
         self._K = K
+        self._pnp = pnp
         self.s = s
         self.enabled = enabled  # off: key frames are recorded (their poses), never queried
         self.stats = LoopStats()
@@ -174,6 +178,8 @@ class LoopClosing:
                  v.matches, shift, turn)
         if shift < self.s.min_correction_m and turn < self.s.min_correction_deg:
             return None
+        if not self._significant(i, j, v):
+            return None  # within the loop's own uncertainty: an edge, no jump
         t_s = self._times[self._records[j].keyframe_id]
         if t_s - self._last_t_s < self.s.min_interval_s:
             return None  # the edge waits for the next correction
@@ -204,7 +210,7 @@ class LoopClosing:
             return None
         self.stats.candidates += 1
         for i in cands[: s.place.candidates]:
-            v = verify(self._records[i], q, s.place, self._rng, self._K)
+            v = verify(self._records[i], q, s.place, self._rng, self._K, self._pnp)
             if v is None:
                 continue
             self.stats.detected += 1
@@ -217,6 +223,20 @@ class LoopClosing:
                      "after %.2f m flown is beyond drift", q.keyframe_id,
                      self._records[i].keyframe_id, shift, turn, path)
         return None
+
+    def _significant(self, i: int, j: int, v: Verified) -> bool:
+        """Whether the map's relative pose of the two key frames is off the
+        loop's by more than the loop's covariance allows (chi-square, 6 dof,
+        99 %), i.e. whether the loop has anything to correct."""
+        if not np.all(np.isfinite(v.cov)):
+            return True
+        T_ji_map = self._records[j].T_cw @ inverse(self._records[i].T_cw)
+        xi = se3_log(inverse(v.T_ij) @ inverse(T_ji_map))  # left perturbation of T_ji
+        try:
+            d2 = float(xi @ np.linalg.solve(v.cov, xi))
+        except np.linalg.LinAlgError:
+            return True
+        return d2 > CHI2_6DOF_99
 
     def _shared(self, a: int, b: int) -> int:
         return int(np.isin(self._records[a].ids, self._records[b].ids).sum())

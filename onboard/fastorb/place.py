@@ -34,7 +34,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 
 from onboard.core.evaluation import umeyama_se3
-from onboard.core.se3 import inverse, make_pose, pose_from_rvec, rvec_tvec
+from onboard.core.se3 import inverse, make_pose
+from onboard.fastorb.pose import PnpSettings, solve_pnp
 
 
 @dataclass
@@ -65,7 +66,6 @@ class PlaceSettings:
     depth_sd: float = 0.0015  # depth sd per m^2 of depth [1/m] (FastOrbParams.local_ba_depth_sd)
     min_inliers: int = 40  # a verified loop needs this many 3-D inliers ...
     min_inlier_share: float = 0.35  # ... and this share of the matches
-    reprojection_px: float = 2.45  # final inliers: sqrt(5.991) px (chi-square 95 %, 1 px sd)
 
 
 class PlaceIndex:
@@ -128,15 +128,21 @@ class Verified:
     T_ij: np.ndarray  # (4, 4) query j's camera in candidate i's: p_i = T_ij p_j
     inliers: int
     matches: int
+    cov: np.ndarray  # (6, 6) of T_ji = inverse(T_ij), left perturbation (phi, rho); NaN: none
     ids_i: np.ndarray  # landmark ids of the inlier pairs, candidate side
     ids_j: np.ndarray  # ... query side
 
 
 def verify(cand: KeyRecord, query: KeyRecord, s: PlaceSettings, rng: np.random.Generator,
-           K: np.ndarray | None = None) -> Verified | None:
-    """3-D-3-D RANSAC between two key frames' landmarks (each in its camera),
-    then (with K and the query's pixels) the pose refined on reprojection;
-    None when fewer than min_inliers (or min_inlier_share) agree."""
+           K: np.ndarray | None = None, pnp: PnpSettings | None = None) -> Verified | None:
+    """3-D-3-D RANSAC between two key frames' landmarks (each in its camera);
+    then, with K and the query's pixels, the tracker's PnP (pose.solve_pnp:
+    pixels and the query's depths as disparities) on the 3-D inliers, which
+    also gives the loop's covariance. Far depths are loose (k z^2: 2.4 cm at
+    4 m), so a 3-D fit on a far cluster is off by 10-20 cm and 1-2 deg while
+    its pixels agree within 1 px with either pose (figure8: a loop off by
+    0.16 m against a true 4 mm): the covariance says so. None when fewer
+    than min_inliers (or min_inlier_share) agree."""
     ia, ib = ratio_matches(cand.desc, query.desc, s.ratio, s.max_hamming)
     if len(ia) < s.min_inliers:
         return None
@@ -164,32 +170,17 @@ def verify(cand: KeyRecord, query: KeyRecord, s: PlaceSettings, rng: np.random.G
             return None
         R, t = umeyama_se3(Q[best], P[best])
         best = np.sum((Q @ R.T + t - P) ** 2, axis=1) <= gate2
-    T_ij = make_pose(R, t)
+    T_ij, cov = make_pose(R, t), np.full((6, 6), np.nan)
     if K is not None and query.uv is not None:
-        T_ij, best = _refined(T_ij, P, query.uv[ib], best, K, s.reprojection_px)
+        sel = np.flatnonzero(best)
+        fit = solve_pnp(P[sel], query.uv[ib[sel]], K, pnp or PnpSettings(), s.min_inliers,
+                        Q[sel, 2])
+        if fit is None:
+            return None
+        best = np.zeros(len(P), bool)
+        best[sel[fit.inliers]] = True
+        T_ij, cov = inverse(fit.T_cw), fit.cov
     n = int(best.sum())
     if n < s.min_inliers or n < s.min_inlier_share * len(P):
         return None
-    return Verified(T_ij, n, len(P), cand.ids[ia[best]], query.ids[ib[best]])
-
-
-def _refined(T_ij: np.ndarray, P: np.ndarray, uv: np.ndarray, inl: np.ndarray, K: np.ndarray,
-             gate_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """The 3-D fit refined on the query's pixels (PnP from it, twice, on the
-    inliers within gate_px): far points' depths are loose (k z^2: 2.4 cm at
-    4 m) and let a 3-D fit be off by 10-20 cm and 1-3 deg, their pixels are
-    not (measured: figure8, aggressive, a loop claimed 0.16-0.25 m drift
-    against a true 4-8 mm)."""
-    rvec, tvec = rvec_tvec(inverse(T_ij))  # candidate camera -> query camera
-    for _ in range(2):
-        if inl.sum() < 6:
-            return T_ij, inl
-        ok, rvec, tvec = cv2.solvePnP(P[inl], uv[inl].astype(np.float64), K, None, rvec, tvec,
-                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
-            return T_ij, np.zeros(len(P), bool)
-        T_ji = pose_from_rvec(rvec, tvec)
-        pc = P @ T_ji[:3, :3].T + T_ji[:3, 3]
-        proj = pc[:, :2] / np.maximum(pc[:, 2:], 1e-6) @ K[:2, :2].T + K[:2, 2]
-        inl = (pc[:, 2] > 0) & (np.sum((proj - uv) ** 2, axis=1) <= gate_px**2)
-    return inverse(T_ji), inl
+    return Verified(T_ij, n, len(P), cov, cand.ids[ia[best]], query.ids[ib[best]])

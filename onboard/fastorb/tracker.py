@@ -88,7 +88,7 @@ class FastOrbTracker:
             MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes),
         ) if p.local_ba else None
         self.loops = LoopClosing(self._map, self.K, LoopSettings(place=PlaceSettings(
-            depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure)
+            depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure, pnp=self._pnp)
         self.keyframe_pose = self.loops.pose_of  # a key frame's T_cw now (final trajectory)
         self._state = TrackState.INITIALIZING
         self._tracked = Tracked.empty()
