@@ -69,6 +69,13 @@ class LoopSettings:
     # Each correction is a reset for the flight controller (docs/autopilot.md):
     # at most one per this time; loops found in between wait as edges.
     min_interval_s: float = 3.0
+    # Temporal consistency (ORB-SLAM2 asks 3 consecutive key frames): a loop
+    # is accepted when one of the previous `consistency_gap` key frames found
+    # one asking for the same world correction, within these.
+    consistency_gap: int = 3
+    consistent_m: float = 0.02  # ... plus consistent_share of the correction
+    consistent_deg: float = 0.3
+    consistent_share: float = 0.25
     edge_sigma: float = 0.01  # every essential-graph edge alike, rad and m (ORB-SLAM2: identity)
     place: PlaceSettings = PlaceSettings()
 
@@ -108,6 +115,7 @@ class LoopClosing:
         self._pending: deque[int] = deque()
         self._last_loop = -(10**9)  # record index of the last corrected key frame
         self._last_t_s = -np.inf  # its time
+        self._hypothesis: tuple[int, np.ndarray] | None = None  # (record, world correction)
         self._moved: dict[int, np.ndarray] = {}  # key frame id -> T_cw, not yet reported
 
     @property
@@ -218,11 +226,29 @@ class LoopClosing:
             path = abs(q.path_m - self._records[i].path_m)
             if (shift <= s.max_shift_m + s.shift_per_m * path
                     and turn <= s.max_turn_deg + s.turn_per_m_deg * path):
-                return i, v
+                return (i, v) if self._consistent(i, j, v) else None
             log.info("loop of key frame %d with %d rejected: a %.2f m / %.1f deg correction "
                      "after %.2f m flown is beyond drift", q.keyframe_id,
                      self._records[i].keyframe_id, shift, turn, path)
         return None
+
+    def _consistent(self, i: int, j: int, v: Verified) -> bool:
+        """Whether a recent key frame's loop asked for the same world
+        correction. A single verified loop can be a repeated structure seen
+        from one place (figure8: 62 of 67 matches agreed on a 0.21 m, 2 deg
+        correction against a true 8 mm, 5 sd beyond the PnP covariance);
+        from the next key frames it asks for a different one, or none."""
+        s = self.s
+        D = inverse(inverse(v.T_ij) @ self._records[i].T_cw) @ self._records[j].T_cw
+        prev, self._hypothesis = self._hypothesis, (j, D)
+        if prev is None or j - prev[0] > s.consistency_gap:
+            return False
+        diff = inverse(prev[1]) @ D
+        size_m = float(np.linalg.norm(D[:3, 3]))
+        size_deg = float(np.degrees(np.linalg.norm(so3_log(D[:3, :3]))))
+        return (float(np.linalg.norm(diff[:3, 3])) <= s.consistent_m + s.consistent_share * size_m
+                and float(np.degrees(np.linalg.norm(so3_log(diff[:3, :3]))))
+                <= s.consistent_deg + s.consistent_share * size_deg)
 
     def _significant(self, i: int, j: int, v: Verified) -> bool:
         """Whether the map's relative pose of the two key frames is off the
