@@ -37,6 +37,7 @@ from onboard.core.camera import CameraModel
 from onboard.core.messages import RgbdFrame
 from onboard.core.rotations import quat_to_matrix
 from onboard.core.sources import DriverThread, FrameSlot
+from sim_replay.stamps import DEFAULT_WINDOW_S
 from sim_replay.tum import Sequence, open_sequence
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,13 @@ PREROLL_S = 0.2  # attitude plays this long before the first frame
 TAIL_S = 0.2  # ... and this long after the last one
 # A camera hands a frame over some time after its capture (exposure, readout,
 # USB): replayed frames appear this long after their stamps, so the AHRS
-# samples after the capture time are there too, as live.
+# samples after the capture time are there too, as live. 33 ms is the OAK's
+# own figure: Luxonis measure 33 ms from the frame's timestamp (getTimestamp,
+# host clock) to the host for colour at 1080p 60 fps over USB 3 ("Optimizing
+# FPS & Latency", depthai docs; mono 400p alone: 7.5 ms). The flight setup
+# (640x400 colour at 30 fps, stereo depth aligned to it, a host Sync node that
+# releases the pair when the slower one is in) is not quicker. Not measured
+# on our device yet: replace it with `nislam run`'s `source` stage on one.
 FRAME_DELIVERY_S = 0.033
 
 
@@ -283,6 +290,7 @@ def open_replay(
     max_gap_s: float = 0.2,
     assoc_max_dt_s: float = 0.02,
     undistort: bool = True,
+    stamp_window_s: float = DEFAULT_WINDOW_S,
     mono_ns: Callable[[], int] = time.monotonic_ns,
     loop_s: float | None = None,
 ) -> Replay:
@@ -290,7 +298,7 @@ def open_replay(
     before the first frame to TAIL_S after the last is played. With `loop_s`:
     forwards and backwards in turn (pingpong_schedule) for at least that long
     at `speed`, frames and attitude mirrored alike."""
-    seq = open_sequence(seq_dir, assoc_max_dt_s, undistort)
+    seq = open_sequence(seq_dir, assoc_max_dt_s, undistort, stamp_window_s)
     t_first, t_last = float(seq.frame_times_s[0]), float(seq.frame_times_s[-1])
     passes = 1
     if loop_s is not None:
