@@ -69,6 +69,12 @@ class LoopSettings:
     # Each correction is a reset for the flight controller (docs/autopilot.md):
     # at most one per this time; loops found in between wait as edges.
     min_interval_s: float = 3.0
+    # A loop must know the relative pose better than the map it corrects:
+    # its PnP sd at most this (position of the camera, rotation). A far,
+    # small cluster of matches (figure8: 62 points 4 m away in one corner)
+    # leaves 4 cm / 0.5 deg; FastORB's own drift here is mm to cm.
+    max_sd_m: float = 0.01
+    max_sd_deg: float = 0.25
     # Temporal consistency (ORB-SLAM2 asks 3 consecutive key frames): a loop
     # is accepted when one of the previous `consistency_gap` key frames found
     # one asking for the same world correction, within these.
@@ -222,6 +228,8 @@ class LoopClosing:
             if v is None:
                 continue
             self.stats.detected += 1
+            if not self._firm(v):
+                continue
             shift, turn = self._mismatch(i, j, v)
             path = abs(q.path_m - self._records[i].path_m)
             if (shift <= s.max_shift_m + s.shift_per_m * path
@@ -231,6 +239,13 @@ class LoopClosing:
                      "after %.2f m flown is beyond drift", q.keyframe_id,
                      self._records[i].keyframe_id, shift, turn, path)
         return None
+
+    def _firm(self, v: Verified) -> bool:
+        if not np.all(np.isfinite(v.cov)):
+            return True  # no covariance (3-D fit only)
+        sd_rot = np.sqrt(max(np.linalg.eigvalsh(v.cov[:3, :3]).max(), 0.0))
+        sd_pos = np.sqrt(max(np.linalg.eigvalsh(v.cov[3:, 3:]).max(), 0.0))
+        return bool(sd_pos <= self.s.max_sd_m and np.degrees(sd_rot) <= self.s.max_sd_deg)
 
     def _consistent(self, i: int, j: int, v: Verified) -> bool:
         """Whether a recent key frame's loop asked for the same world
