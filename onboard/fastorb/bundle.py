@@ -41,7 +41,8 @@ CHI2_MONO = 5.991  # ... 2 dof
 class BaSettings:
     bf_px: float = 120.0  # virtual stereo baseline x fx [px] (FastOrbParams.rgbd_bf_px)
     max_depth_m: float = 3.0  # depth used as a stereo measurement below this
-    pixel_sigma: float = 1.0  # measurement sd [px]
+    pixel_sigma: float = 1.0  # sd of a keypoint's pixel [px]
+    disparity_sigma: float = 1.0  # sd of the virtual disparity bf / z [px]
     max_iterations: int = 10
     relative_tol: float = 1e-5  # stop when the error falls by less than this share
 
@@ -105,9 +106,13 @@ class LocalBundle:
         for i in np.flatnonzero(p.fixed):
             graph.add(gtsam.NonlinearEqualityPose3(X(int(i)), values.atPose3(X(int(i)))))
         huber = gtsam.noiseModel.mEstimator.Huber
+        # (u_L, u_R, v) with u_R = u_L - d: u_R carries the pixel's error
+        # and the disparity's, so the two u rows are correlated.
+        sp2, sd2 = s.pixel_sigma**2, s.disparity_sigma**2
         stereo_noise = gtsam.noiseModel.Robust.Create(
             huber.Create(float(np.sqrt(CHI2_STEREO))),
-            gtsam.noiseModel.Isotropic.Sigma(3, s.pixel_sigma))
+            gtsam.noiseModel.Gaussian.Covariance(
+                np.array([[sp2, sp2, 0.0], [sp2, sp2 + sd2, 0.0], [0.0, 0.0, sp2]])))
         mono_noise = gtsam.noiseModel.Robust.Create(
             huber.Create(float(np.sqrt(CHI2_MONO))),
             gtsam.noiseModel.Isotropic.Sigma(2, s.pixel_sigma))
@@ -196,6 +201,6 @@ class LocalBundle:
         e2 = (u - p.obs_uv[:, 0]) ** 2 + (v - p.obs_uv[:, 1]) ** 2
         st = self._stereo
         disp_meas = np.where(st, self.s.bf_px / np.where(st, p.obs_z, 1.0), 0.0)
-        e2 = e2 + np.where(st, (self.s.bf_px / zs - disp_meas) ** 2, 0.0)
-        chi2 = e2 / self.s.pixel_sigma**2
+        chi2 = e2 / self.s.pixel_sigma**2 + np.where(
+            st, (self.s.bf_px / zs - disp_meas) ** 2, 0.0) / self.s.disparity_sigma**2
         return (z <= 1e-6) | (chi2 > np.where(st, CHI2_STEREO, CHI2_MONO))

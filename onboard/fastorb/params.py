@@ -85,3 +85,4 @@ class FastOrbParams:
     local_ba_keyframes: int = 6  # the new key frame and its most covisible ones, optimised
     local_ba_fixed_keyframes: int = 4  # other key frames seeing their landmarks, held fixed
     local_ba_depth_sd: float = 0.0015  # depth sd per m^2 of depth (Kinect-like; the sim's) [1/m]
+    local_ba_pixel_sd: float = 1.0  # sd of a key frame's landmark pixel in the BA [px]
