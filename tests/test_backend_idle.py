@@ -120,3 +120,16 @@ def test_service_runs_the_back_end_between_frames(tmp_path: Path) -> None:
     # (A few drop on a loaded machine with no back end at all.)
     assert sources.camera.slot.stats.dropped <= 0.2 * tracker.frames
     assert np.mean(gaps > 0) >= 0.5  # the idle time went to the back end
+
+
+def test_local_ba_switches() -> None:
+    """--local-ba / --no-local-ba set [fastorb] local_ba either way (to
+    measure what the back end gains); neither leaves the config's value."""
+    from onboard.app.cli import build_parser
+    from onboard.app.cli_tracking import _overrides
+
+    parser = build_parser()
+    for flags, want in (([], None), (["--local-ba"], True), (["--no-local-ba"], False)):
+        for cmd in ("replay", "bench"):
+            args = parser.parse_args([cmd, "SEQ", *flags] if cmd == "replay" else [cmd, *flags])
+            assert _overrides(args).get("fastorb.local_ba") == want, (cmd, flags)

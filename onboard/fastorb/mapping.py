@@ -191,6 +191,27 @@ class LocalMapping:
         newest = int(np.argmax(np.where(p.fixed, -1, p.kf_ids)))
         delta = inverse(res.T_cw[newest]) @ p.T_cw[newest]
         last_id = int(p.kf_ids.max())
+        # A landmark of a moved key frame that was not in the BA (seen by it
+        # alone, as every landmark is that a key frame makes from its depth,
+        # or left out by max_points) moves rigidly with that key frame, the
+        # newest observer: where the BA would have put it. Left in place, its
+        # copies disagreed with the key frame's new pose and with the tracked
+        # points, which follow it (`corrected`).
+        done = np.concatenate([ids, dropped])
+        extra_ids, extra_xyz = [], []
+        for i in sorted(np.flatnonzero(~p.fixed), key=lambda i: -p.kf_ids[i]):
+            kf = kfs.get(int(p.kf_ids[i]))
+            if kf is None:
+                continue
+            sel = ~np.isin(kf.ids, done)
+            d = inverse(res.T_cw[i]) @ p.T_cw[i]
+            extra_ids.append(kf.ids[sel])
+            extra_xyz.append(kf.xyz_W[sel] @ d[:3, :3].T + d[:3, 3])
+            done = np.concatenate([done, kf.ids[sel]])
+        ids = np.concatenate([ids, *extra_ids])
+        xyz = np.concatenate([xyz, *extra_xyz])
+        order = np.argsort(ids, kind="stable")
+        ids, xyz = ids[order], xyz[order]
         for kf in kfs.values():
             rows = erase.get(kf.keyframe_id)
             if rows:
