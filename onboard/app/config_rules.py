@@ -222,6 +222,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fastorb.clahe_clip_limit": POSITIVE,
     "fastorb.local_ba_depth_sd": POSITIVE,
     "fastorb.local_ba_pixel_sd": POSITIVE,
+    "fastorb.local_ba_max_points": POSITIVE,
     "fastorb.clahe_tiles": POSITIVE,
     "fastorb.orb_features": POSITIVE,
     "fastorb.orb_scale_factor": Range(lo=1.0, lo_open=True),

@@ -86,7 +86,8 @@ class FastOrbTracker:
         self.mapping = LocalMapping(
             self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m,
                                 pixel_sigma=p.local_ba_pixel_sd),
-            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes),
+            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes,
+                            max_points=p.local_ba_max_points),
         ) if p.local_ba else None
         self._state = TrackState.INITIALIZING
         self._tracked = Tracked.empty()
