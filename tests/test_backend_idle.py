@@ -101,7 +101,7 @@ def test_service_runs_the_back_end_between_frames(tmp_path: Path) -> None:
     units fit), and a back end that always has work does not starve tracking:
     the frames are taken as they come, not dropped."""
     flight = tmp_path / "circle"
-    simulate("circle", flight, SimOptions(seconds=2.0, width=160, height=120), progress=False)
+    simulate("circle", flight, SimOptions(seconds=1.0, width=160, height=120), progress=False)
     cfg = load_config()
     sources, cfg = replay_sources(cfg, flight)
     holder: dict[str, BusyBackEnd] = {}
