@@ -43,7 +43,9 @@ class BaSettings:
     max_depth_m: float = 3.0  # depth used as a stereo measurement below this
     pixel_sigma: float = 1.0  # sd of a keypoint's pixel [px]
     disparity_sigma: float = 1.0  # sd of the virtual disparity bf / z [px]
-    estimate_sigmas: bool = True  # the second stage weighs by the sds the first one's residuals show
+    # True: the second stage weighs by the sds the first one's residuals show
+    # (off: tum_fr1_rpy 0.051 m with it, 0.029 m without; docs/fastorb_backend.md)
+    estimate_sigmas: bool = False
     min_sigma: float = 0.05  # ... but not below this [px]
     max_iterations: int = 10
     relative_tol: float = 1e-5  # stop when the error falls by less than this share

@@ -368,22 +368,9 @@ class FastOrbTracker:
         assert feats is not None and feats.desc is not None
         tracked = outcome.tracked
         on = self._detector.pair_with(tracked.uv, feats.uv, 1.5)
-        # One key-frame row per landmark: keypoints of several pyramid levels
-        # sit on the same tracked point (and a take-over in _track_local_map
-        # can leave two tracked points with one id). A second row counted the
-        # observation twice in the local BA (1.6 rows per landmark on figure8)
-        # and in the culling's observer counts.
-        _, first = np.unique(on, return_index=True)
-        repeat = on >= 0
-        repeat[first] = False
-        on[repeat] = -2  # neither on a tracked point nor a new landmark
-        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on == -1])
-        kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on == -1)[has_depth]])
+        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0])
+        kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on < 0)[has_depth]])
         kf_pts = tracked.subset(on[on >= 0]).extended(fresh)
-        _, once = np.unique(kf_pts.ids, return_index=True)
-        if len(once) < len(kf_pts):
-            once.sort()
-            kf_idx, kf_pts = kf_idx[once], kf_pts.subset(once)
         free = self._detector.free(tracked.uv, fresh.uv)
         room = max(self.p.orb_features - len(tracked), 0)
         outcome.tracked = tracked.extended(fresh.subset(np.flatnonzero(free)[:room]))
