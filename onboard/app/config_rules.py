@@ -206,11 +206,15 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.depth_tilt_max_rad": NON_NEGATIVE,
     "nislam.time_offset_s": ANY,
     "nislam.time_offset_max_s": NON_NEGATIVE,
+    "nislam.rolling_shutter_readout_s": Range(lo=0.0, hi=0.1),  # rows read out within a frame
+    "nislam.rolling_shutter_rate_half_window_s": POSITIVE,
     # FastORB (onboard/fastorb/); other ints >= 0, other floats finite
     "fusion.accel_sd_m_s2": POSITIVE,
     "fusion.initial_speed_sd_m_s": POSITIVE,
     "fusion.gate_chi2": POSITIVE,
-    "fusion.rejoin_after_frames": POSITIVE,
+    "fusion.key_clones": POSITIVE,
+    "fusion.noise_adapt_gain": FRACTION,
+    "fusion.noise_scale_max": Range(lo=1.0),
     "fusion.nislam_var_scale": POSITIVE,
     "fusion.fastorb_var_scale": POSITIVE,
     "fusion.psr_full": NON_NEGATIVE,
