@@ -185,6 +185,12 @@ def replay(
     metrics.update(_backend_metrics(tracker, track_log, seq, cfg.replay.gt_max_gap_s))
     if hasattr(tracker, "stats"):  # the fused tracker: who contributed, who was left out
         metrics["fusion"] = tracker.stats()
+    mapping = getattr(tracker, "mapping", None)
+    if mapping is not None:  # FastORB's local mapping (docs/fastorb_backend.md)
+        st = mapping.stats
+        metrics["local_mapping"] = {"bundle_adjustments": st.jobs,
+                                    "culled_keyframes": st.culled_keyframes,
+                                    "erased_observations": st.erased_observations}
     write_text_atomic(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     written = {name: p for name, p in paths.items() if p.exists()}
     return ReplayResult(metrics, out_dir, written, plot_note)

@@ -114,6 +114,11 @@ class TrackResult:
     # frame's pose used, and (tracker, why) for each one left out.
     contributors: tuple[str, ...] = ()
     left_out: tuple[tuple[str, str], ...] = ()
+    # The position relative to the reference key as the tracker measured it
+    # (p_W_m minus that key's position in the tracker's world, W axes; None:
+    # not known). Unlike p_W_m it does not move when the tracker refines or
+    # re-uses keys, so the fused tracker can tell motion from a key's correction.
+    reference_offset_m: np.ndarray | None = None
     # Loop closures that moved the map so far (FastORB): the pose jumps when
     # this goes up, as after a reset; the MAVLink feed announces it so.
     loop_corrections: int = 0

@@ -84,8 +84,10 @@ class FastOrbTracker:
                                 min_gate_px=p.pnp_min_gate_px, bf_px=p.rgbd_bf_px)
         self._map = LocalMap(p.max_keyframes, p.local_map_keyframes)
         self.mapping = LocalMapping(
-            self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m),
-            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes),
+            self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m,
+                                pixel_sigma=p.local_ba_pixel_sd),
+            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes,
+                            max_points=p.local_ba_max_points),
         ) if p.local_ba else None
         self.loops = LoopClosing(self._map, self.K, LoopSettings(place=PlaceSettings(
             depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure, pnp=self._pnp)
