@@ -125,5 +125,7 @@ def score_flight(
         "tracked": len(rows) / max(min(len(seq), max_frames or len(seq)), 1), "keys": f"{new}/{m.keyframe_changes}",
         "res_mm": float(np.median([r.res_m for r in rows])) * 1e3,
         "arrays": {"t_s": est.t_s, "increment_error_m": inc_err, "same_key": same,
-                   "reference_keyframe_id": ref, "res_m": np.array([r.res_m for r in rows])},
+                   "reference_keyframe_id": ref, "res_m": np.array([r.res_m for r in rows]),
+                   "shift_cells": np.array([r.shift_cells for r in rows]).reshape(-1, 2),
+                   "tz_m": np.array([r.tz_m for r in rows])},
     }

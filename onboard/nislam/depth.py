@@ -51,7 +51,7 @@ def depth_translation(
     sums = kern.depth_difference_sums(
         key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
         p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
-        p.depth_sigma_rel, p.depth_sigma_floor_m,
+        p.depth_sigma_rel, p.depth_sigma_floor_m, p.depth_subcell, p.depth_cell_step,
     )
     if float(sums[kern.N]) < p.min_matched_cells:
         return None

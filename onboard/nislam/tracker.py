@@ -98,6 +98,7 @@ class NislamTracker:
         self._calib = OffsetCalibration(
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
+        self._surface_tol = (params.surface_tol_m, params.surface_tol_sigmas * params.depth_sigma_rel)
         kern.warm_up()  # compile before the first frame, not during it
 
     # ------------------------------------------------------------------ API
@@ -226,7 +227,7 @@ class NislamTracker:
         r_key = attitude.rotation_at(key.t_s + self._calib.offset_s)
         r_key = key.R_W_C if r_key is None else r_key
         r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
-        img = project(cloud, r_rel, self.shape, key.img.res_m)
+        img = project(cloud, r_rel, self.shape, key.img.res_m, surface_tol=self._surface_tol)
         if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
             return None
         # The search window grows with the time since the last match, so a
@@ -379,7 +380,8 @@ class NislamTracker:
             self.intr.height / self.intr.width,
         )
         slot = self._store.take()
-        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True))
+        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True,
+                                surface_tol=self._surface_tol))
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
                                        slot.spectra)
         filt.train(whiten(img.gray, img.mask))
