@@ -221,26 +221,30 @@ def warped_gray(bgr: np.ndarray, stride: int, hmat: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True, inline="always")
 def _slope(depth: np.ndarray, mask: np.ndarray, i: int, j: int, di: int, dj: int) -> float:
     """Depth change per cell at (i, j) along (di, dj): a central difference,
-    one-sided where one neighbour is a hole or off the grid, 0 where both
-    are. At ~1 point per cell (pixel_stride 2 at 1.5 m) a key has holes
-    everywhere: asking for both neighbours left a tenth of the cells, the
-    nearest and densest, and t_z drifted on them."""
+    one-sided where one neighbour is a hole or off the grid, from the cells
+    two away where both are, else 0. At ~1 point per cell (pixel_stride 2 at
+    1.5 m) a key has holes everywhere: asking for both neighbours left a
+    tenth of the cells, the nearest and densest, and t_z drifted on them."""
     h, w = depth.shape
-    i0, j0, i1, j1 = i - di, j - dj, i + di, j + dj
-    lo = i0 >= 0 and j0 >= 0 and mask[i0, j0] > 0
-    hi = i1 < h and j1 < w and mask[i1, j1] > 0
-    if lo and hi:
-        return 0.5 * (depth[i1, j1] - depth[i0, j0])
-    if hi:
-        return depth[i1, j1] - depth[i, j]
-    if lo:
-        return depth[i, j] - depth[i0, j0]
+    for k in range(1, 3):
+        i0, j0, i1, j1 = i - k * di, j - k * dj, i + k * di, j + k * dj
+        lo = i0 >= 0 and j0 >= 0 and mask[i0, j0] > 0
+        hi = i1 < h and j1 < w and mask[i1, j1] > 0
+        if lo and hi:
+            return 0.5 * (depth[i1, j1] - depth[i0, j0]) / k
+        if hi:
+            return (depth[i1, j1] - depth[i, j]) / k
+        if lo:
+            return (depth[i, j] - depth[i0, j0]) / k
     return 0.0
 
 
 # Index of each sum in depth_difference_sums' result; with weights, every sum
 # but N (the count of cells) is weighted and SUM_W is the sum of the weights.
-N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY, SUM_W = range(12)
+# SUM_G*: the key's depth slope g (m per cell, with carry only): sums of g,
+# g g^T and Delta g for the joint fit of t_z and the registration error.
+(N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY, SUM_W,
+ SUM_GX, SUM_GY, SUM_GXX, SUM_GYY, SUM_GXY, SUM_DGX, SUM_DGY) = range(19)
 
 
 @njit(cache=True, nogil=True)
@@ -286,7 +290,7 @@ def depth_difference_sums(
     four key neighbours are not all filled (hole and frame borders) are left
     out in that mode.
     """
-    out = np.zeros(12)
+    out = np.zeros(19)
     h, w = key_depth.shape
     weighted = sigma_floor_m > 0.0
     carry = carry or weighted
@@ -314,6 +318,8 @@ def depth_difference_sums(
                 continue
             d = cur_depth[i + dv, j + du] - key_depth[i, j]
             wt = 1.0
+            gx = 0.0
+            gy = 0.0
             if carry:
                 gx = _slope(key_depth, key_mask, i, j, 0, 1)
                 gy = _slope(key_depth, key_mask, i, j, 1, 0)
@@ -342,6 +348,13 @@ def depth_difference_sums(
             out[SUM_XY] += wt * x * y
             out[SUM_DX] += wt * d * x
             out[SUM_DY] += wt * d * y
+            out[SUM_GX] += wt * gx
+            out[SUM_GY] += wt * gy
+            out[SUM_GXX] += wt * gx * gx
+            out[SUM_GYY] += wt * gy * gy
+            out[SUM_GXY] += wt * gx * gy
+            out[SUM_DGX] += wt * d * gx
+            out[SUM_DGY] += wt * d * gy
     return out
 
 

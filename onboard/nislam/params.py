@@ -43,6 +43,8 @@ class NislamParams:
     # sampling) and carried to the sub-cell peak; floor 0 = the paper's mean.
     depth_sigma_rel: float = 0.0015  # 1/m: stereo / structured-light class (1.5 mm at 1 m)
     depth_subcell: bool = False  # carry each depth difference to the sub-cell peak along the key's slope
+    depth_registration_sigma_cells: float = 0.0  # > 0: t_z fitted with the peak's error (prior, cells) from the slopes
+    depth_refines_shift: bool = False  # ... and that error corrects the lateral shift
     depth_cell_step: int = 2  # Eq. 18 over every n-th row and column
     depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
     # A cell holds the mean depth and gray of its front surface: the points

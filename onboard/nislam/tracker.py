@@ -179,7 +179,8 @@ class NislamTracker:
             new_keyframe=new_key,
             reset_counter=self._reset_counter,
             lost_reason=None,
-            shift_cells=(peak.du_cells, peak.dv_cells),
+            shift_cells=(peak.du_cells + outcome.depth.shift_fix_cells[0],
+                         peak.dv_cells + outcome.depth.shift_fix_cells[1]),
             tz_m=outcome.depth.tz_m,
             res_m=key.img.res_m,
             rotation_residual_rad=outcome.theta_rad,
@@ -259,7 +260,8 @@ class NislamTracker:
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
-        t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
+        fu, fv = depth.shift_fix_cells  # the peak's error the depth showed (depth.py)
+        t_inc = np.array([-(peak.du_cells + fu) * s, -(peak.dv_cells + fv) * s, depth.tz_m])
         p_W = key.p_W_m + key.R_W_C @ t_inc
         pose_var = self._pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
         return _Match(p_W, peak, depth, theta_img, pose_var)
