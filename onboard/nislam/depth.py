@@ -24,7 +24,6 @@ class DepthFit:
     z_mean_m: float  # mean key depth of the matched cells
     matched: int  # matched cells (every other row and column)
     var_z_m2: float  # scatter of the depth differences over the matched cells
-    shift_fix_cells: tuple[float, float] = (0.0, 0.0)  # registration error the depth showed (du, dv)
 
 
 def depth_translation(
@@ -41,12 +40,13 @@ def depth_translation(
     sums of onboard.nislam.kernels.depth_difference_sums (every other row and
     column: a quarter of the cells fixes three parameters just as well).
 
-    `frac`: the peak's sub-cell part beyond (du, dv). With
-    `depth_sigma_floor_m` > 0 the fit is weighted by the inverse variance of
-    each difference and the differences are carried to the sub-cell shift
-    (kernels.depth_difference_sums): the paper's plain mean lets slanted
-    surfaces and depth edges, whose differences move with the rounding of the
-    shift, set t_z.
+    `frac`: the peak's sub-cell part beyond (du, dv). With `depth_subcell`
+    (default) each difference is carried to the sub-cell shift along the
+    key's depth slope (kernels.depth_difference_sums): at the whole-cell
+    shift, a surface seen at a grazing angle (5 cm of depth per cell) moves
+    t_z by the rounding times its slope, centimetres from one frame to the
+    next. With `depth_sigma_floor_m` > 0 the fit is also weighted by the
+    inverse variance of each difference.
     """
     s = key.img.res_m
     sums = kern.depth_difference_sums(
@@ -69,8 +69,6 @@ def depth_translation(
     def fit(tz: float) -> DepthFit:
         return DepthFit(float(tz), theta, z_mean, n_cells, var_z)
 
-    if p.depth_registration_sigma_cells > 0.0 and (p.depth_subcell or p.depth_sigma_floor_m > 0.0):
-        return _joint_fit(sums, n, n_cells, z_mean, var_z, p)
     if not p.depth_tilt_fit:
         return fit(-sum_d / n)
     # Normal equations of Delta ~ a + b (x - mx) + c (y - my), centred on
@@ -94,36 +92,3 @@ def depth_translation(
     # clipped tilt bounds how far a poor fit can move it from the mean.
     tz = -sum_d / n + theta[1] * mx - theta[0] * my
     return fit(tz)
-
-
-def _joint_fit(sums: np.ndarray, n: float, n_cells: int, z_mean: float, var_z: float,
-               p: NislamParams) -> DepthFit:
-    """t_z and the peak's registration error delta (cells) together.
-
-    Carried to the sub-cell peak, each difference still reads
-    Delta_i = -t_z - g_i . delta, g_i the key's depth slope (m per cell):
-    the peak's error is common to every cell, so it does not average out, and
-    on a surface seen at a grazing angle (5 cm of depth per 9 mm cell on the
-    synthetic flights) 0.2 cell of it is 1 cm of t_z. Least squares in
-    (a = -t_z, b = -delta), delta with a prior of `depth_registration_sigma_cells`
-    (the peak's own precision, docs/nislam-error-budget.md): where the
-    matched surfaces slope in different directions the depth pins delta and
-    t_z no longer pays for it; on one plane delta along its slope stays with
-    the prior. The prior's weight is in the fit's units: the weights are
-    inverse variances (m^-2) when weighted, else 1 per cell against the
-    differences' own scatter.
-    """
-    unit = 1.0 if p.depth_sigma_floor_m > 0.0 else 1.0 / max(var_z, 1e-8)
-    lam = 1.0 / (unit * p.depth_registration_sigma_cells**2)
-    ata = np.array([
-        [n, sums[kern.SUM_GX], sums[kern.SUM_GY]],
-        [sums[kern.SUM_GX], sums[kern.SUM_GXX] + lam, sums[kern.SUM_GXY]],
-        [sums[kern.SUM_GY], sums[kern.SUM_GXY], sums[kern.SUM_GYY] + lam],
-    ])
-    atb = np.array([sums[kern.SUM_D], sums[kern.SUM_DGX], sums[kern.SUM_DGY]])
-    try:
-        a, bx, by = np.linalg.solve(ata, atb)
-    except np.linalg.LinAlgError:
-        a, bx, by = float(sums[kern.SUM_D]) / n, 0.0, 0.0
-    fix = (-float(bx), -float(by)) if p.depth_refines_shift else (0.0, 0.0)
-    return DepthFit(-float(a), np.zeros(3), z_mean, n_cells, var_z, fix)

@@ -36,8 +36,6 @@ def zbuffer_project(
     h: int,
     w: int,
     want_winner: bool,
-    surface_tol_m: float = 0.0,
-    surface_tol_rel: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Orthographic z-buffer projection of an organised cloud.
 
@@ -48,17 +46,6 @@ def zbuffer_project(
     decides). Returns depth [m], gray in [0, 1], 0/1 mask (all (h, w) float32,
     holes 0) and, with want_winner, the flat pixel index that won each cell
     (-1 for holes) so key frames can pick up colour.
-
-    With a surface tolerance (surface_tol_m + surface_tol_rel z^2 > 0) a cell
-    holds the MEAN depth and gray of the points at most that far behind its
-    nearest one (the front surface; farther points are occluded) instead of
-    the nearest point alone. The nearest of n noisy depths is biased toward
-    the camera by ~sigma E[min of n normals] (-0.56 sigma for 2 points, -1.03
-    for 4), and n changes from frame to frame as the pixel grid slides over
-    the cells: that bias moved t_z (Eq. 18) by several mm per frame on the
-    synthetic flights (docs/nislam-error-budget.md). The mean is unbiased,
-    and averaging the gray box-filters the texture inside a cell, so the
-    correlation sees less aliasing of texels finer than a cell.
     """
     n_cells = h * w
     zbuf = np.full(n_cells, _EMPTY, np.uint32)
@@ -90,37 +77,6 @@ def zbuffer_project(
     mask = np.zeros((h, w), np.float32)
     to_m = np.float32(1.0 / DEPTH_UNITS_PER_M)
     to_unit = np.float32(1.0 / 255.0)
-    if surface_tol_m > 0.0 or surface_tol_rel > 0.0:
-        # Second pass: average the front surface of each cell.
-        sum_z = np.zeros(n_cells, np.float32)
-        sum_g = np.zeros(n_cells, np.float32)
-        cnt = np.zeros(n_cells, np.float32)
-        for i in range(rows):
-            for j in range(cols):
-                z = depth_m[i, j]
-                if not z > 0.0:
-                    continue
-                x = rays[i, j, 0] * z
-                y = rays[i, j, 1] * z
-                zr = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z
-                uf = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
-                vf = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
-                if not (zr > 0.0 and 0.0 <= uf < w and 0.0 <= vf < h):
-                    continue
-                idx = int(vf) * w + int(uf)
-                z0 = np.float32(zbuf[idx] >> np.uint32(8)) * to_m
-                if zr <= z0 + surface_tol_m + surface_tol_rel * z0 * z0:
-                    sum_z[idx] += zr
-                    sum_g[idx] += np.float32(gray8[i, j])
-                    cnt[idx] += 1.0
-        for v in range(h):
-            for u in range(w):
-                c = cnt[v * w + u]
-                if c > 0.0:
-                    depth[v, u] = sum_z[v * w + u] / c
-                    gray[v, u] = sum_g[v * w + u] / c * to_unit
-                    mask[v, u] = 1.0
-        return depth, gray, mask, winner
     for v in range(h):
         for u in range(w):
             c = zbuf[v * w + u]
@@ -241,10 +197,7 @@ def _slope(depth: np.ndarray, mask: np.ndarray, i: int, j: int, di: int, dj: int
 
 # Index of each sum in depth_difference_sums' result; with weights, every sum
 # but N (the count of cells) is weighted and SUM_W is the sum of the weights.
-# SUM_G*: the key's depth slope g (m per cell, with carry only): sums of g,
-# g g^T and Delta g for the joint fit of t_z and the registration error.
-(N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY, SUM_W,
- SUM_GX, SUM_GY, SUM_GXX, SUM_GYY, SUM_GXY, SUM_DGX, SUM_DGY) = range(19)
+N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY, SUM_W = range(12)
 
 
 @njit(cache=True, nogil=True)
@@ -290,7 +243,7 @@ def depth_difference_sums(
     four key neighbours are not all filled (hole and frame borders) are left
     out in that mode.
     """
-    out = np.zeros(19)
+    out = np.zeros(12)
     h, w = key_depth.shape
     weighted = sigma_floor_m > 0.0
     carry = carry or weighted
@@ -318,8 +271,6 @@ def depth_difference_sums(
                 continue
             d = cur_depth[i + dv, j + du] - key_depth[i, j]
             wt = 1.0
-            gx = 0.0
-            gy = 0.0
             if carry:
                 gx = _slope(key_depth, key_mask, i, j, 0, 1)
                 gy = _slope(key_depth, key_mask, i, j, 1, 0)
@@ -348,13 +299,6 @@ def depth_difference_sums(
             out[SUM_XY] += wt * x * y
             out[SUM_DX] += wt * d * x
             out[SUM_DY] += wt * d * y
-            out[SUM_GX] += wt * gx
-            out[SUM_GY] += wt * gy
-            out[SUM_GXX] += wt * gx * gx
-            out[SUM_GYY] += wt * gy * gy
-            out[SUM_GXY] += wt * gx * gy
-            out[SUM_DGX] += wt * d * gx
-            out[SUM_DGY] += wt * d * gy
     return out
 
 
@@ -366,8 +310,6 @@ def warm_up() -> None:
     rays = np.zeros((4, 4, 3), np.float32)
     rays.setflags(write=False)  # as projection._rays hands them out
     zbuffer_project(f32, np.zeros((4, 4), np.uint8), rays, np.zeros((3, 4), np.float32), 2, 2, True)
-    zbuffer_project(f32, np.zeros((4, 4), np.uint8), rays, np.zeros((3, 4), np.float32), 2, 2, True,
-                    0.01, 0.0045)
     depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1)
     depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1, 0.1, 0.1,
                           0.0015, 0.001)

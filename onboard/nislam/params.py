@@ -42,17 +42,12 @@ class NislamParams:
     # noise sigma_rel z^2, at least the floor, plus the slope times the cell
     # sampling) and carried to the sub-cell peak; floor 0 = the paper's mean.
     depth_sigma_rel: float = 0.0015  # 1/m: stereo / structured-light class (1.5 mm at 1 m)
-    depth_subcell: bool = False  # carry each depth difference to the sub-cell peak along the key's slope
-    depth_registration_sigma_cells: float = 0.0  # > 0: t_z fitted with the peak's error (prior, cells) from the slopes
-    depth_refines_shift: bool = False  # ... and that error corrects the lateral shift
-    depth_cell_step: int = 2  # Eq. 18 over every n-th row and column
+    # Each depth difference carried to the sub-cell peak along the key's depth
+    # slope: at the whole-cell shift the rounding times the slope moved t_z by
+    # up to 1 cm a frame on grazing surfaces (docs/nislam-error-budget.md)
+    depth_subcell: bool = True
+    depth_cell_step: int = 2  # Eq. 18 over every n-th row and column (1: 10-15 % less axial noise, +1.7 ms)
     depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
-    # A cell holds the mean depth and gray of its front surface: the points
-    # at most surface_tol_m + surface_tol_sigmas * depth_sigma_rel * z^2
-    # behind its nearest one (0, 0: the nearest point alone, as the authors;
-    # biased toward the camera under depth noise, docs/nislam-error-budget.md)
-    surface_tol_m: float = 0.0
-    surface_tol_sigmas: float = 0.0
     depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
     # t_z on the key axis from a plane fit of the depth differences: off, its
     # tilt is noise levered onto t_z (docs/nislam-error-budget.md)

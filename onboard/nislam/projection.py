@@ -95,7 +95,6 @@ def project(
     shape: tuple[int, int],
     res_m: float,
     with_colour: bool = False,
-    surface_tol: tuple[float, float] = (0.0, 0.0),
 ) -> AxonometricImage:
     """Rotate the cloud into the key's axes (p' = R_rel p, Sec. IV-A1) and
     project it orthographically onto the grid with a z-buffer (nearest point
@@ -104,11 +103,6 @@ def project(
     Cell u covers x' in [(u - W/2) res, (u + 1 - W/2) res): a floor, not C++'s
     truncation toward zero, so the cells either side of the axis are the same
     size and shifts stay unbiased.
-
-    `surface_tol` (m, 1/m): with either > 0 a cell holds the mean of the
-    points within tol_m + tol_rel z^2 behind its nearest one, not the
-    nearest alone (kernels.zbuffer_project: the nearest of several noisy
-    depths is biased toward the camera).
     """
     h, w = shape
     m = np.zeros((3, 4), np.float32)
@@ -116,7 +110,7 @@ def project(
     m[2, :3] = r_key_cur[2]
     m[:2, 3] = (w // 2, h // 2)
     depth, gray, mask, winner = zbuffer_project(
-        cloud.depth_m, cloud.gray8, cloud.rays, m, h, w, with_colour, surface_tol[0], surface_tol[1]
+        cloud.depth_m, cloud.gray8, cloud.rays, m, h, w, with_colour
     )
     bgr = None
     if with_colour:

@@ -98,7 +98,6 @@ class NislamTracker:
         self._calib = OffsetCalibration(
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
-        self._surface_tol = (params.surface_tol_m, params.surface_tol_sigmas * params.depth_sigma_rel)
         kern.warm_up()  # compile before the first frame, not during it
 
     # ------------------------------------------------------------------ API
@@ -179,8 +178,7 @@ class NislamTracker:
             new_keyframe=new_key,
             reset_counter=self._reset_counter,
             lost_reason=None,
-            shift_cells=(peak.du_cells + outcome.depth.shift_fix_cells[0],
-                         peak.dv_cells + outcome.depth.shift_fix_cells[1]),
+            shift_cells=(peak.du_cells, peak.dv_cells),
             tz_m=outcome.depth.tz_m,
             res_m=key.img.res_m,
             rotation_residual_rad=outcome.theta_rad,
@@ -228,7 +226,7 @@ class NislamTracker:
         r_key = attitude.rotation_at(key.t_s + self._calib.offset_s)
         r_key = key.R_W_C if r_key is None else r_key
         r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
-        img = project(cloud, r_rel, self.shape, key.img.res_m, surface_tol=self._surface_tol)
+        img = project(cloud, r_rel, self.shape, key.img.res_m)
         if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
             return None
         # The search window grows with the time since the last match, so a
@@ -260,8 +258,7 @@ class NislamTracker:
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
-        fu, fv = depth.shift_fix_cells  # the peak's error the depth showed (depth.py)
-        t_inc = np.array([-(peak.du_cells + fu) * s, -(peak.dv_cells + fv) * s, depth.tz_m])
+        t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
         p_W = key.p_W_m + key.R_W_C @ t_inc
         pose_var = self._pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
         return _Match(p_W, peak, depth, theta_img, pose_var)
@@ -382,8 +379,7 @@ class NislamTracker:
             self.intr.height / self.intr.width,
         )
         slot = self._store.take()
-        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True,
-                                surface_tol=self._surface_tol))
+        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True))
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
                                        slot.spectra)
         filt.train(whiten(img.gray, img.mask))
