@@ -118,7 +118,7 @@ def score_flight(
     d = d[np.isfinite(d).all(axis=1)]
     new = sum(1 for r in rows if r.new_keyframe)
     return {
-        "rpe1": m.rpe_lag1_m, "rpe10": m.rpe_lag10_m,
+        "rpe1": m.rpe_lag1_m, "rpe3": m.rpe_lag3_m, "rpe10": m.rpe_lag10_m, "rpe30": m.rpe_lag30_m,
         "lat": float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))) if len(d) else float("nan"),
         "ax": float(np.sqrt(np.mean(d[:, 2] ** 2))) if len(d) else float("nan"),
         "jump": m.keyframe_jump_median_m, "ate": m.ate_rmse_m, "ratio": m.path_length_ratio,
