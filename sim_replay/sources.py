@@ -37,6 +37,7 @@ from onboard.core.camera import CameraModel
 from onboard.core.messages import RgbdFrame
 from onboard.core.rotations import quat_to_matrix
 from onboard.core.sources import DriverThread, FrameSlot
+from sim_replay.stamps import DEFAULT_WINDOW_S
 from sim_replay.tum import Sequence, open_sequence
 
 log = logging.getLogger(__name__)
@@ -283,6 +284,7 @@ def open_replay(
     max_gap_s: float = 0.2,
     assoc_max_dt_s: float = 0.02,
     undistort: bool = True,
+    stamp_window_s: float = DEFAULT_WINDOW_S,
     mono_ns: Callable[[], int] = time.monotonic_ns,
     loop_s: float | None = None,
 ) -> Replay:
@@ -290,7 +292,7 @@ def open_replay(
     before the first frame to TAIL_S after the last is played. With `loop_s`:
     forwards and backwards in turn (pingpong_schedule) for at least that long
     at `speed`, frames and attitude mirrored alike."""
-    seq = open_sequence(seq_dir, assoc_max_dt_s, undistort)
+    seq = open_sequence(seq_dir, assoc_max_dt_s, undistort, stamp_window_s)
     t_first, t_last = float(seq.frame_times_s[0]), float(seq.frame_times_s[-1])
     passes = 1
     if loop_s is not None:

@@ -27,6 +27,7 @@ from onboard.core.messages import RgbdFrame
 from onboard.core.trajectory import Trajectory, parse_tum_lines
 from sim_replay.images import decode_image
 from sim_replay.outdir import check_complete
+from sim_replay.stamps import DEFAULT_WINDOW_S, StampFit, fit_camera_clock
 from sim_replay.tum_files import (
     DEFAULT_GT_MAX_GAP_S,
     DEFAULT_MAX_ASSOC_DT_S,
@@ -148,8 +149,11 @@ class Sequence:
         n_rgb_entries: int,
         n_depth_entries: int,
         undistort: bool,
+        stamps: StampFit | None = None,
     ) -> None:
         self.path = path
+        # How the colour stamps became capture times (sim_replay/stamps.py).
+        self.stamps = stamps
         self.camera = camera
         self.groundtruth = groundtruth
         self.attitude = attitude
@@ -268,9 +272,14 @@ def open_sequence(
     seq_dir: Path | str,
     max_assoc_dt_s: float = DEFAULT_MAX_ASSOC_DT_S,
     undistort: bool = True,
+    stamp_window_s: float = DEFAULT_WINDOW_S,
 ) -> Sequence:
     """Open a TUM-layout sequence folder: camera, lists, association, existence
-    checks, ground truth and attitude. Raises NislamError if nothing usable."""
+    checks, ground truth and attitude. Raises NislamError if nothing usable.
+
+    Colour and depth stamps are each fitted to their camera's clock over
+    +-`stamp_window_s` (0 = as recorded; sim_replay/stamps.py says why); the
+    pairing is done on these capture times."""
     seq_dir = Path(seq_dir)
     if not seq_dir.is_dir():
         raise NislamError(f"sequence folder {seq_dir} does not exist")
@@ -295,6 +304,14 @@ def open_sequence(
     skipped.duplicate_stamps = dup_rgb + dup_depth
     skipped.out_of_order_stamps = ooo_rgb + ooo_depth
 
+    # Pair on capture times: recorded host stamps jitter by 1-2 ms each, and on
+    # two free-running clocks (fr1/rpy: 33.336 and 33.369 ms) a pair near half
+    # a period apart falls out of the window by its jitter alone (28 of 723
+    # frames of fr1/rpy, each leaving a two-frame step in the trajectory).
+    rgb_fit = fit_camera_clock([t for t, _f in rgb], stamp_window_s)
+    depth_t = fit_camera_clock([t for t, _f in depth], stamp_window_s).t_s
+    rgb = [(float(t), f) for t, (_t, f) in zip(rgb_fit.t_s, rgb)]
+    depth = [(float(t), f) for t, (_t, f) in zip(depth_t, depth)]
     # Associate on the full lists first, then drop pairs with a missing file:
     # pairing only the files that survived could marry a colour frame to the
     # wrong depth frame when its true partner is the one that was lost.
@@ -352,7 +369,7 @@ def open_sequence(
         log.log(logging.WARNING if damaged else logging.INFO,
                 "%s: %d usable frames; skipped while listing: %s",
                 seq_dir, len(pairs), skipped.summary())
-    log.debug("%s: %d rgb / %d depth entries, %d usable frames",
-              seq_dir, len(rgb), len(depth), len(pairs))
+    log.debug("%s: %d rgb / %d depth entries, %d usable frames; colour %s",
+              seq_dir, len(rgb), len(depth), len(pairs), rgb_fit.describe())
     return Sequence(seq_dir, camera, pairs, groundtruth, attitude, skipped,
-                    len(rgb), len(depth), undistort)
+                    len(rgb), len(depth), undistort, rgb_fit)

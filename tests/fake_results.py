@@ -3,6 +3,8 @@ scripts/bench_outputs.py."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from onboard.core.messages import KeyframeCloud, TrackResult, TrackState
@@ -70,3 +72,42 @@ def keyframe(keyframe_id: int, shape: tuple[int, int] = (60, 80), seed: int = 0,
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return KeyframeCloud(keyframe_id, 100.0 + keyframe_id, rng.normal(size=3), R,
                          float(rng.uniform(0.005, 0.03)), depth, gray, bgr)
+
+
+class ScriptedTracker:
+    """A tracker for the service-loop tests: trusted poses moving at 0.1 m/s
+    along x, `jump_m` further from frame number `jump_at` or from time
+    `jump_at_s` on (the tracker re-found its key in the wrong place)."""
+
+    name = "scripted"
+
+    def __init__(self, jump_at: int | None = None, jump_m: float = 0.49,
+                 jump_at_s: float | None = None) -> None:
+        self.k = 0
+        self.jump_at, self.jump_m, self.jump_at_s = jump_at, jump_m, jump_at_s
+
+    def track(self, frame, attitude) -> TrackResult:
+        self.k += 1
+        x = 0.1 * (frame.t_s - 100.0)
+        if ((self.jump_at is not None and self.k >= self.jump_at)
+                or (self.jump_at_s is not None and frame.t_s >= self.jump_at_s)):
+            x += self.jump_m
+        return dataclasses.replace(
+            track_result(frame.t_s, np.array([x, 0.0, 1.0]), quality=80, psr=20.0,
+                         keyframe_id=1, pose_var=np.full(6, 1e-4)),
+            matched_cells=100)
+
+    def finish(self):
+        return None
+
+
+class NullRunner:
+    """The driver runner of a Sources built from fakes: nothing to start or stop."""
+
+    stop_times_s: dict[str, float] = {}
+
+    def start(self) -> None:
+        pass
+
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        return True

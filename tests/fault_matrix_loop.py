@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from fake_results import NullRunner, ScriptedTracker
 from fault_matrix import WAIT_S, Lines, Row, _has
 
 from onboard.core.attitude import AttitudeBuffer
@@ -51,42 +52,6 @@ class PacedCamera:
         return self.k >= self.n
 
 
-class ScriptedTracker:
-    """Trusted poses at 0.1 m/s along x; `jump` metres off from time `jump_at_s` on."""
-
-    name = "scripted"
-
-    def __init__(self) -> None:
-        self.jump_at_s: float | None = None
-        self.jump = 0.0
-
-    def track(self, frame, attitude):
-        from onboard.core.messages import TrackResult, TrackState
-
-        x = 0.1 * (frame.t_s - 100.0)
-        if self.jump_at_s is not None and frame.t_s >= self.jump_at_s:
-            x += self.jump
-        return TrackResult(
-            t_s=frame.t_s, state=TrackState.TRACKING, trusted=True, p_W_m=np.array([x, 0.0, 1.0]),
-            R_W_C=np.eye(3), pose_var=np.full(6, 1e-4), quality=80, psr=20.0, keyframe_id=1,
-            new_keyframe=False, reset_counter=0, lost_reason=None, shift_cells=(0.0, 0.0),
-            tz_m=0.0, res_m=0.01, rotation_residual_rad=np.zeros(3), attitude_offset_s=0.0,
-            matched_cells=100)
-
-    def finish(self):
-        return None
-
-
-class _Runner:
-    stop_times_s: dict[str, float] = {}
-
-    def start(self) -> None:
-        pass
-
-    def stop(self, timeout_s: float = 5.0) -> bool:
-        return True
-
-
 def service_fault(fault: str, lines: Lines, tmp: Path) -> Row:
     from onboard.app import run_files
     from onboard.app.config import load_config
@@ -96,11 +61,11 @@ def service_fault(fault: str, lines: Lines, tmp: Path) -> Row:
 
     seconds = 5.0
     cam = PacedCamera(seconds)
-    tracker = ScriptedTracker()
+    tracker = ScriptedTracker(jump_m=0.0)
     cfg = load_config(None, {"service.stats_period_s": 3600.0, "service.recover_s": 0.5,
                              "service.degraded_gap_s": 0.2, "service.frame_timeout_s": 2.0})
     out = tmp / f"run_{fault.replace(' ', '_')}"
-    src = Sources("paced", cam, AttitudeBuffer(np.eye(3), 16, 0.1), _Runner())
+    src = Sources("paced", cam, AttitudeBuffer(np.eye(3), 16, 0.1), NullRunner())
     svc = Service(cfg, src, threading.Event(), out_dir=out, tracker_factory=lambda *_: tracker)
     real_open = run_files._open_file
     disk = {"full": False}
@@ -127,7 +92,7 @@ def service_fault(fault: str, lines: Lines, tmp: Path) -> Row:
         if fault == "pose jump after a gap":
             cam.stalled_until = t_inject + 0.33
             tracker.jump_at_s = 100.0 + (t_inject + 0.3 - cam.t0)
-            tracker.jump = 0.49
+            tracker.jump_m = 0.49
             t_warn = lines.wait(_has("pose jump the motion model cannot explain"), t_inject)
             detector = "pose gate: the 0.33 s gap, then 2 poses withheld and checked"
         elif fault == "frames late (CPU starved)":

@@ -67,7 +67,7 @@ def test_zero_model_reproduces_groundtruth_at_frame_times(rpy):
     series, label = attitude_for_replay(rpy, AttitudeErrorModel())
     assert label.startswith("groundtruth.txt") and "exact" in label
     _p, q, valid = rpy.groundtruth_at(rpy.frame_times_s)
-    assert valid.all() and len(series) == len(rpy.frame_times_s) == 694
+    assert valid.all() and len(series) == len(rpy.frame_times_s) == 722
     r_gt = Rotation.from_quat(q).as_matrix()
     r_series = np.stack([series.rotation_at(t) for t in rpy.frame_times_s])
     np.testing.assert_allclose(r_series, r_gt, atol=1e-12)

@@ -43,9 +43,9 @@ def test_stages_and_latencies_are_measured_from_capture(clock: Clock, tmp_path: 
     # A replay's stamps on another clock: the host reached stamp 5.0 at 99.95.
     t = LoopTiming(host_time_s=lambda s: s + 94.95, csv_path=tmp_path / "latency.csv")
     t.service_start_s = 99.0
-    frame(t, clock, 5.0, [2.0, 10.0, 0.5, 1.0], trusted=False, good=False)  # taken 50 ms late
+    frame(t, clock, 5.0, [2.0, 10.0, 0.5, 1.0, 3.0], trusted=False, good=False)  # taken 50 ms late
     clock.t = 100.1
-    frame(t, clock, 5.1, [0.0, 8.0, 0.2, 0.3])  # capture at 100.05: taken 50 ms after it
+    frame(t, clock, 5.1, [0.0, 8.0, 0.2, 0.3, 0.0])  # capture at 100.05: taken 50 ms after it
     clock.t += 0.004
     assert t.written.n == 0
     t.one_way_s = lambda: 0.0005
@@ -75,7 +75,7 @@ def test_stages_and_latencies_are_measured_from_capture(clock: Clock, tmp_path: 
 def test_a_pose_written_after_a_periodic_flush_still_reaches_its_row(clock: Clock,
                                                                       tmp_path: Path) -> None:
     t = LoopTiming(csv_path=tmp_path / "latency.csv")
-    frame(t, clock, 99.99, [0.0, 5.0, 0.1, 0.1])
+    frame(t, clock, 99.99, [0.0, 5.0, 0.1, 0.1, 0.0])
     t.flush_csv(final=False)  # its pose is not written yet: the row waits
     t.on_written(round(99.99e6), clock.t + 0.002)
     t.flush_csv()
@@ -88,7 +88,7 @@ def test_minute_figures_and_the_verbose_line(clock: Clock) -> None:
     lines: list[str] = []
     t.tick(clock.t, lines.append)
     for i in range(30):
-        frame(t, clock, clock.t - 0.020, [0.0, 5.0 + i % 3, 0.1, 0.1])
+        frame(t, clock, clock.t - 0.020, [0.0, 5.0 + i % 3, 0.1, 0.1, 0.0])
         clock.t += 1.0
         t.tick(clock.t, lines.append)
     assert not t.minutes
@@ -97,7 +97,7 @@ def test_minute_figures_and_the_verbose_line(clock: Clock) -> None:
     assert len(t.minutes) == 1 and t.minutes[0]["done_ms"]["n"] == 30
     assert t.minutes[0]["written_ms"]["n"] == 0
     assert len(lines) == 1 and lines[0].startswith("latency capture->done p50 ")
-    frame(t, clock, clock.t - 0.020, [0.0, 5.0, 0.1, 0.1])
+    frame(t, clock, clock.t - 0.020, [0.0, 5.0, 0.1, 0.1, 0.0])
     assert t.done.n == 31  # the run's histogram goes on; the minute's starts again
 
 

@@ -263,6 +263,7 @@ def _key_chain(tracker, scene, n_keys: int):
         att.table[t] = R
         bgr, depth = scene.render(R, c)
         r = tracker.track(RgbdFrame(t, bgr, depth), att)
+        tracker.finish_frame()  # as the service does once the pose is out
         yield r, (R, c.copy())
         c = c + R @ np.array([2 * r.res_m, -r.res_m, -0.004])
 

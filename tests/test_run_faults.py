@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fake_results import NullRunner, ScriptedTracker
 
 from onboard import NislamError
 from onboard.app import run_files
@@ -23,7 +24,7 @@ from onboard.app.service import Service
 from onboard.app.sources import Sources
 from onboard.core.attitude import AttitudeBuffer
 from onboard.core.camera import CameraModel
-from onboard.core.messages import RgbdFrame, TrackResult, TrackState
+from onboard.core.messages import RgbdFrame
 from onboard.core.trajectory import parse_tum_lines
 
 HZ = 30.0
@@ -52,45 +53,9 @@ class FakeCamera:
         return self.next >= self.n
 
 
-class ScriptedTracker:
-    """Trusted poses moving at 0.1 m/s along x, `jump_m` further from frame
-    `jump_at` on (the tracker re-found its key in the wrong place)."""
-
-    name = "scripted"
-
-    def __init__(self, jump_at: int | None = None, jump_m: float = 0.49) -> None:
-        self.k = 0
-        self.jump_at, self.jump_m = jump_at, jump_m
-
-    def track(self, frame: RgbdFrame, attitude) -> TrackResult:
-        self.k += 1
-        x = 0.1 * (frame.t_s - 100.0)
-        if self.jump_at is not None and self.k >= self.jump_at:
-            x += self.jump_m
-        return TrackResult(
-            t_s=frame.t_s, state=TrackState.TRACKING, trusted=True, p_W_m=np.array([x, 0.0, 1.0]),
-            R_W_C=np.eye(3), pose_var=np.full(6, 1e-4), quality=80, psr=20.0, keyframe_id=1,
-            new_keyframe=False, reset_counter=0, lost_reason=None, shift_cells=(0.0, 0.0),
-            tz_m=0.0, res_m=0.01, rotation_residual_rad=np.zeros(3), attitude_offset_s=0.0,
-            matched_cells=100)
-
-    def finish(self):
-        return None
-
-
-class Runner:
-    stop_times_s: dict[str, float] = {}
-
-    def start(self) -> None:
-        pass
-
-    def stop(self, timeout_s: float = 5.0) -> bool:
-        return True
-
-
 def run_service(out: Path, frames: int, tracker: ScriptedTracker):
     cfg = load_config(None, {"service.stats_period_s": 3600.0})
-    sources = Sources("fake", FakeCamera(frames), AttitudeBuffer(np.eye(3), 16, 0.1), Runner())
+    sources = Sources("fake", FakeCamera(frames), AttitudeBuffer(np.eye(3), 16, 0.1), NullRunner())
     svc = Service(cfg, sources, threading.Event(), out_dir=out,
                   tracker_factory=lambda *_: tracker)
     return svc, svc.run()

@@ -115,6 +115,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                  ("plain", "other"))]
     print("median by frame kind: " + ", ".join(
         f"{label} {ms:.2f} ms ({n})" for label, n, ms in kinds if ms is not None))
+    if stats["deferred_ms_median"] is not None:  # finish_frame(): after the pose
+        new_key = stats["keyframe_deferred_ms_median"]
+        print(f"after the pose (finish_frame): median {stats['deferred_ms_median']:.2f} ms, "
+              f"p95 {stats['deferred_ms_p95']:.2f} ms"
+              + (f", new key {new_key:.2f} ms" if new_key is not None else ""))
     print("stages (p50 / p99 ms, n): " + ", ".join(
         f"{name} {st['p50']:.2f} / {st['p99']:.2f} ({st['n']})"
         for name, st in stats["stages_ms"].items() if st["n"]))

@@ -163,6 +163,7 @@ BAUD = Range(1200, 12_000_000)
 # type (ints >= 0; floats only need to be finite, which the type check does).
 RULES: dict[str, Range | Choice | Check] = {
     "replay.assoc_max_dt_s": POSITIVE,
+    "replay.stamp_window_s": NON_NEGATIVE,
     "replay.gt_max_gap_s": NON_NEGATIVE,
     "attitude.noise_deg": NON_NEGATIVE,
     "attitude.bias_deg_per_sqrt_s": NON_NEGATIVE,

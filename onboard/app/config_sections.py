@@ -18,6 +18,7 @@ class ReplayConfig:
     assoc_max_dt_s: float = 0.02  # rgb/depth pairing window (TUM associate.py default)
     gt_max_gap_s: float = 0.2  # ground truth / attitude interpolate across gaps up to this
     undistort: bool = True  # undistort colour and depth once with precomputed maps
+    stamp_window_s: float = 1.0  # fit host-received stamps to the camera's clock over +- this [s]; 0 = as recorded
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,8 @@ stamps (depthai stamps with it; a replay's stamps are mapped onto it by
             -> tracker      `track()`; its end is "done" (capture -> done)
             -> publish      handing the result to the outputs (queues)
             -> health       the health state machine and its report
+            -> deferred     the tracker's work for the next frames (its key's
+                            refinement, a new key), after the pose went out
     (sender thread)  -> written   the MAVLink pose written to the link (capture -> written)
     (the link)       -> arrival   written + the link's one-way time, from our own
                                   TIMESYNC round trips (onboard/outputs/mavlink_timesync.py)
@@ -35,10 +37,10 @@ from onboard.app.loop_stats import MsHistogram, percentiles_ms
 
 log = logging.getLogger(__name__)
 
-LOOP_STAGES = ("source", "attitude_wait", "tracker", "publish", "health")
+LOOP_STAGES = ("source", "attitude_wait", "tracker", "publish", "health", "deferred")
 LATENCY_FILE = "latency.csv"
 CSV_HEADER = ("capture_s,source_ms,attitude_wait_ms,tracker_ms,publish_ms,health_ms,"
-              "done_ms,written_ms,trusted\n")
+              "deferred_ms,done_ms,written_ms,trusted\n")
 WINDOW = 300  # frames in the status's recent percentiles (10 s at 30 Hz)
 
 

@@ -131,6 +131,7 @@ class ReplayResult:
         offset_text = "n/a" if offset is None else f"{offset * 1e3:+.1f} ms"
         lines.append(f"attitude    {m['attitude_source']}")
         lines.append(f"            time offset estimate {offset_text}")
+        lines.append(f"frame times {m['frame_stamps']}")
         lines.append(f"output      {self.out_dir}")
         if self.plot_note is not None:
             lines.append(f"plot        skipped: {self.plot_note}")
@@ -152,7 +153,8 @@ def replay(
         raise NislamError(f"max_frames must be >= 1, got {max_frames}")
     pin_one_core()
     out_dir = Path(out_dir)
-    seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
+    seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
+                        cfg.replay.stamp_window_s)
     attitude, attitude_label = attitude_for_replay(
         seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s
     )
@@ -192,12 +194,15 @@ def track_sequence(
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     frames = islice(seq.frames(), max_frames)
     backend_step = getattr(tracker, "backend_step", None)
+    finish_frame = getattr(tracker, "finish_frame", None)  # its work for the next frames
     # disable=None lets tqdm switch itself off when stderr is not a terminal.
     with tqdm(frames, total=total, unit="frame", desc=seq.path.name, file=sys.stderr,
               disable=None if progress else True) as bar:
         for frame in bar:
             t0 = time.perf_counter()
             result = tracker.track(frame, attitude)
+            if finish_frame is not None:  # timed with track(): the frame's whole cost
+                finish_frame()
             out.frame_ms.append((time.perf_counter() - t0) * 1e3)
             if backend_step is not None:  # one unit of back-end work in the frame's idle time
                 t0 = time.perf_counter()
@@ -300,6 +305,7 @@ def build_metrics(
         "attitude_source": attitude_label,
         "attitude_offset_s": track_log.attitude_offset_s,
         "skipped": seq.skipped.as_dict(),  # every reader count (sim_replay.tum.SkipCounts)
+        "frame_stamps": seq.stamps.describe() if seq.stamps is not None else "stamps as recorded",
         "map_points": map_points,
         "keyframe_clouds": len(track_log.clouds),
         "plot_written": plot_written,

@@ -3,7 +3,8 @@
     take the newest frame (stale ones are dropped by the camera's slot, never
     queued) -> the tracker, which looks the attitude up at the capture time
     -> the outputs (MAVLink, zenoh) -> the health state machine -> the
-    watchdog ping
+    tracker's work for the next frames (`finish_frame`: a new key, the key's
+    refinement), once the pose is on its way -> the watchdog ping
 
 Drivers (camera, AHRS, the autopilot link) run on their own threads, as do
 the outputs' senders; nothing here blocks on a device or a socket for longer
@@ -242,6 +243,12 @@ class Service:
             now, result, tracker.fallback.name if tracker.fallback is not None else None)
         self._report(outputs, report)
         self._log_result(result, ms)
+        timing.lap()
+        # The pose is handed over: wake the outputs' threads now (not at the
+        # next turn), then the tracker's deferred work, which no pose waits for.
+        for wake in self._wakes:
+            wake.flush()
+        tracker.finish_frame()
         timing.lap()
         timing.frame_end(result.trusted and result.p_W_m is not None and not withheld,
                          report.state is Health.TRACKING)

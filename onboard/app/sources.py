@@ -72,6 +72,7 @@ def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
     rp = open_replay(seq_dir, speed=cfg.service.replay_speed,
                      buffer_capacity=cfg.ahrs.buffer_samples, max_gap_s=cfg.ahrs.max_gap_s,
                      assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort,
+                     stamp_window_s=cfg.replay.stamp_window_s,
                      loop_s=loop_s)
     passes = rp.passes
     q = matrix_to_quat(rp.buffer.R_B_C)

@@ -127,6 +127,13 @@ class FusedTracker:
         self.frames += 1
         return out
 
+    def finish_frame(self) -> None:
+        """Each tracker's work for the next frames, after the pose went out."""
+        for link in self.links:
+            done = getattr(link.tracker, "finish_frame", None)
+            if done is not None:
+                done()
+
     def finish(self) -> KeyframeCloud | None:
         cloud = self.links[0].tracker.finish()
         return None if cloud is None else self._cloud_into_world(cloud)

@@ -91,6 +91,11 @@ class SwitchingTracker:
         assert self.fallback is not None
         return self._into_world(self.fallback.track(frame, attitude))
 
+    def finish_frame(self) -> None:
+        """The trackers' work for the next frames, after the pose went out."""
+        for tracker in (self.primary, self.fallback):
+            finish_frame(tracker)
+
     def finish(self) -> KeyframeCloud | None:
         cloud = (self.fallback or self.primary).finish()
         return None if cloud is None else self._cloud_into_world(cloud)
@@ -142,6 +147,13 @@ class SwitchingTracker:
     def _cloud_into_world(self, cloud: KeyframeCloud) -> KeyframeCloud:
         p, R = self._frame.pose(cloud.p_W_m, cloud.R_W_C)
         return dataclasses.replace(cloud, p_W_m=p, R_W_C=R)
+
+
+def finish_frame(tracker: object) -> None:
+    """`tracker.finish_frame()` when it has deferred work (onboard.nislam.deferred)."""
+    done = getattr(tracker, "finish_frame", None)
+    if done is not None:
+        done()
 
 
 def _tie(last: tuple[np.ndarray, np.ndarray], p_T: np.ndarray, R_T: np.ndarray,

@@ -13,6 +13,9 @@ Per frame (ref. "Per-frame order"):
      rotation from the tilt of the depth differences; pose composition,
   5. key refinement by a count-weighted moving average (Eq. 19),
   6. a new key frame when PSR < T_r (Eq. 17).
+Steps 5 and 6 serve the next frames, not this one's pose: `track()` only
+queues them and `finish_frame()` does them, once the caller has sent the
+pose (the next `track()` does them first if it was not called).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Trac
 from onboard.nislam import kernels as kern
 from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate, overlap
 from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
+from onboard.nislam.deferred import Deferred
 from onboard.nislam.depth import DepthFit, depth_translation
 from onboard.nislam.keymap import KeyframeMap
 from onboard.nislam.keys import Key, KeyStore
@@ -98,12 +102,20 @@ class NislamTracker:
         self._calib = OffsetCalibration(
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
+        self._deferred = Deferred()  # steps 5 and 6, for after the pose (deferred.py)
         kern.warm_up()  # compile before the first frame, not during it
 
     # ------------------------------------------------------------------ API
     @property
     def attitude_offset_s(self) -> float:
         return self._calib.offset_s
+
+    def finish_frame(self) -> None:
+        """The last frame's work that its pose did not need (its key's
+        refinement, Eq. 19; the new key's projection, filter and map entry,
+        Eq. 17): called after the pose went out. The same operations in the
+        same order as if done inside track(), so the poses are identical."""
+        self._deferred.run()
 
     def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
         """Track one frame; attitude is looked up at the capture time + offset.
@@ -114,6 +126,7 @@ class NislamTracker:
         up to 20 ms apart does not shift the texture against the geometry by
         the rotation in between (at 60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m).
         The result keeps the frame's stamp and its colour-time attitude."""
+        self._deferred.run()  # the last frame's, if finish_frame() was not called
         t_att = frame.t_s + self._calib.offset_s
         r_cur = attitude.rotation_at(t_att)
         if r_cur is None or not np.all(np.isfinite(r_cur)):
@@ -161,10 +174,15 @@ class NislamTracker:
                            outcome.pose_var[:3])
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
+        key_id = self._key.keyframe_id
         if new_key:
             # The switching frame is posed against the old key, then becomes the
-            # key with that pose (ref. "Per-frame order", step 6).
-            finished += self._new_key_from(self._prev)
+            # key with that pose (ref. "Per-frame order", step 6): made after
+            # the pose went out (finish_frame); the old key's cloud goes now.
+            finished.append(self._key_cloud(self._key))
+            key_id = self._next_key_id
+            prev = self._prev
+            self._deferred.add(None, lambda: self._new_key_from(prev, hand_over=False))
         return TrackResult(
             t_s=frame.t_s,
             state=TrackState.TRACKING,
@@ -174,7 +192,7 @@ class NislamTracker:
             pose_var=outcome.pose_var,
             quality=self._quality(peak.psr),
             psr=peak.psr,
-            keyframe_id=self._key.keyframe_id,
+            keyframe_id=key_id,
             new_keyframe=new_key,
             reset_counter=self._reset_counter,
             lost_reason=None,
@@ -214,6 +232,7 @@ class NislamTracker:
 
     def finish(self) -> KeyframeCloud | None:
         """Flush the current key's refined cloud (end of a run)."""
+        self._deferred.run()
         return None if self._key is None else self._key_cloud(self._key)
 
     # ------------------------------------------------------------ matching
@@ -221,6 +240,7 @@ class NislamTracker:
         self, key: Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
         t_att: float,
     ) -> _Match | None:
+        self._deferred.run(key)  # its refinement by an earlier match
         # The key's attitude is looked up again at the current offset estimate,
         # so key and frame share one clock while the offset settles.
         r_key = attitude.rotation_at(key.t_s + self._calib.offset_s)
@@ -253,8 +273,8 @@ class NislamTracker:
             if theta is not None:
                 theta_img = theta
                 self._calibrate(key, r_rel, attitude, t_att, theta)
-        if peak.psr > self.p.psr_refine:
-            self._refine(key, img, du, dv, depth.tz_m)
+        if peak.psr > self.p.psr_refine:  # for the next frames: after the pose
+            self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
@@ -368,11 +388,11 @@ class NislamTracker:
             reference_keyframe_id=self._key.keyframe_id,
         )
 
-    def _new_key_from(self, prev: _Prev) -> list[KeyframeCloud]:
+    def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
-        returns the replaced key's cloud for the map."""
+        returns the replaced key's cloud for the map (`hand_over`)."""
         old = self._key
-        finished = [] if old is None else [self._key_cloud(old)]
+        finished = [] if old is None or not hand_over else [self._key_cloud(old)]
         p = self.p
         res = adaptive_resolution(
             prev.cloud, p.grid_width, p.adaptive_mu, p.max_distance_m, p.len_hist, p.hist_sample,
@@ -408,6 +428,7 @@ class NislamTracker:
         """The key as it is now: copies, since a kept key may be refined and
         moved after the map consumer got it (same id: the newer one wins),
         and its slot is re-used for a later key."""
+        self._deferred.run(key)
         return KeyframeCloud(
             key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C, key.img.res_m,
             np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr.copy(),
