@@ -47,7 +47,7 @@ class NislamParams:
     # up to 1 cm a frame on grazing surfaces (docs/nislam-error-budget.md)
     depth_subcell: bool = True
     depth_cell_step: int = 2  # Eq. 18 over every n-th row and column (1: 10-15 % less axial noise, +1.7 ms)
-    depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
+    depth_sigma_floor_m: float = 0.001  # floor (depth quantisation, ~1 mm); 0 = unweighted (docs/nislam-error-budget.md)
     depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
     # t_z on the key axis from a plane fit of the depth differences: off, its
     # tilt is noise levered onto t_z (docs/nislam-error-budget.md)
