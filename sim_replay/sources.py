@@ -46,7 +46,13 @@ PREROLL_S = 0.2  # attitude plays this long before the first frame
 TAIL_S = 0.2  # ... and this long after the last one
 # A camera hands a frame over some time after its capture (exposure, readout,
 # USB): replayed frames appear this long after their stamps, so the AHRS
-# samples after the capture time are there too, as live.
+# samples after the capture time are there too, as live. 33 ms is the OAK's
+# own figure: Luxonis measure 33 ms from the frame's timestamp (getTimestamp,
+# host clock) to the host for colour at 1080p 60 fps over USB 3 ("Optimizing
+# FPS & Latency", depthai docs; mono 400p alone: 7.5 ms). The flight setup
+# (640x400 colour at 30 fps, stereo depth aligned to it, a host Sync node that
+# releases the pair when the slower one is in) is not quicker. Not measured
+# on our device yet: replace it with `nislam run`'s `source` stage on one.
 FRAME_DELIVERY_S = 0.033
 
 

@@ -8,10 +8,10 @@ key ids and key clouds are identical."""
 from __future__ import annotations
 
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
+from fake_results import NullRunner, ScriptedTracker
 from test_nislam import INTR, Scene, _errors_mm, _pan_out_and_back, _params, _track_poses
 
 from onboard.app import service as service_mod
@@ -20,7 +20,7 @@ from onboard.app.service import Service
 from onboard.app.sources import Sources
 from onboard.core.attitude import AttitudeBuffer
 from onboard.core.camera import CameraModel
-from onboard.core.messages import RgbdFrame, TrackResult, TrackState
+from onboard.core.messages import RgbdFrame, TrackResult
 from onboard.nislam import correlation, deferred
 from onboard.nislam.tracker import NislamTracker
 from onboard.outputs.wake import Wake
@@ -118,36 +118,19 @@ class _Camera:
         return self.next >= self.n
 
 
-class _Runner:
-    stop_times_s: dict[str, float] = {}
-
-    def start(self) -> None:
-        pass
-
-    def stop(self, timeout_s: float = 5.0) -> bool:
-        return True
-
-
-class _Tracker:
-    name = "recording"
+class _Tracker(ScriptedTracker):
+    """Steady trusted poses; records its calls."""
 
     def __init__(self, events: list[str]) -> None:
+        super().__init__()
         self.events = events
 
     def track(self, frame: RgbdFrame, attitude) -> TrackResult:
         self.events.append("track")
-        return TrackResult(
-            t_s=frame.t_s, state=TrackState.TRACKING, trusted=True,
-            p_W_m=np.array([0.1 * (frame.t_s - 100.0), 0.0, 1.0]), R_W_C=np.eye(3),
-            pose_var=np.full(6, 1e-4), quality=80, psr=50.0, keyframe_id=0, new_keyframe=False,
-            reset_counter=0, lost_reason=None, shift_cells=(0.0, 0.0), tz_m=0.0, res_m=0.01,
-            rotation_residual_rad=np.zeros(3), attitude_offset_s=0.0, matched_cells=100)
+        return super().track(frame, attitude)
 
     def finish_frame(self) -> None:
         self.events.append("deferred")
-
-    def finish(self):
-        return None
 
 
 class _Output:
@@ -181,11 +164,11 @@ class _Output:
         pass
 
 
-def test_the_service_hands_the_pose_over_before_the_deferred_work(monkeypatch, tmp_path: Path):
+def test_the_service_hands_the_pose_over_before_the_deferred_work(monkeypatch):
     events: list[str] = []
     monkeypatch.setattr(service_mod, "make_outputs", lambda *a, **k: _Output(events))
     cfg = load_config(None, {"service.stats_period_s": 3600.0})
-    sources = Sources("fake", _Camera(6), AttitudeBuffer(np.eye(3), 16, 0.1), _Runner())
+    sources = Sources("fake", _Camera(6), AttitudeBuffer(np.eye(3), 16, 0.1), NullRunner())
     svc = Service(cfg, sources, threading.Event(), tracker_factory=lambda *_: _Tracker(events))
     svc.run()
     frames = "".join(e[0] for e in events)

@@ -114,6 +114,17 @@ class TrackResult:
     # frame's pose used, and (tracker, why) for each one left out.
     contributors: tuple[str, ...] = ()
     left_out: tuple[tuple[str, str], ...] = ()
+    # The position relative to the reference key as the tracker measured it
+    # (p_W_m minus that key's position in the tracker's world, W axes; None:
+    # not known). Unlike p_W_m it does not move when the tracker refines or
+    # re-uses keys, so the fused tracker can tell motion from a key's correction.
+    reference_offset_m: np.ndarray | None = None
+    # Loop closures that moved the map so far (FastORB): the pose jumps when
+    # this goes up, as after a reset; the MAVLink feed announces it so.
+    loop_corrections: int = 0
+    # Key frames a loop closure moved, (id, p_W_m, R_W_C) each, on the first
+    # result after it: the map's consumers re-place them (zenoh re-publishes).
+    moved_keyframes: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

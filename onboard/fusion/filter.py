@@ -1,6 +1,6 @@
 """The fused tracker's estimator: a Kalman filter on position and velocity in
-the world W, the attitude taken from the AHRS, with one cloned anchor
-position per tracker (stochastic cloning, Roumeliotis & Burdick, ICRA 2002).
+the world W, the attitude taken from the AHRS, with cloned anchor
+positions (each tracker's last frame and its keys) (stochastic cloning, Roumeliotis & Burdick, ICRA 2002).
 
 State x = [p, v, a_1 .. a_n] (3 each). With the attitude given, translation
 is linear, so the filter is exact (the error state is the state):
@@ -10,21 +10,18 @@ is linear, so the filter is exact (the error state is the state):
              dt^2/2, dt]); anchors do not move;
   measure    tracker i's motion since its anchor, rotated into W:
              z_i = p - a_i + e_i, e_i ~ N(0, R_i);
-  re-anchor  a_i := p, copying p's row and column of the covariance, so the
+  clone      a_i := p, copying p's row and column of the covariance, so the
              anchor carries p's error (and its correlation with everything
              else): motion measured afterwards is relative to a position known
              only as well as p was. Drift accumulates exactly there.
 
-  drift      a_i's covariance grows by Q (`diffuse`) when tracker i makes a
-             new key: the tracker's world itself drifts there.
-
 A tracker matches its frames against a key (NI-SLAM) or a local map of
-landmarks (FastORB), so its error is about constant while it uses one key and
-steps when it makes a new one, from the pose it made it at; back on an old key
-(NI-SLAM's key re-use, FastORB's landmarks seen again) the error is what it
-was. Modelling that drift on the anchor, rather than re-anchoring at each key,
-keeps each tracker's own consistency: a tracker returning to an old key
-measures the position it had there, and the filter uses that.
+landmarks (FastORB): its error is about constant while it uses one key and
+steps when it makes a new one, from the pose it made it at. So each
+measurement is taken against a clone of the fused position where the
+tracker's reference was made (onboard.fusion.fused): the drift then is the
+fused error at those points, carried in P with its correlations, and a
+tracker coming back to an old key closes the loop against that key's clone.
 """
 
 from __future__ import annotations
@@ -73,12 +70,10 @@ class AnchoredFilter:
         if dt <= 0.0:
             return
         self.t_s = t_s
-        F = np.eye(6)
-        F[:3, 3:6] = np.eye(3) * dt
-        self.x[:6] = F @ self.x[:6]
-        P = self.P
-        P[:6, :] = F @ P[:6, :]
-        P[:, :6] = P[:, :6] @ F.T
+        self.x[:3] += dt * self.x[3:6]
+        P = self.P  # F P F^T with F = [I dt I; 0 I] on p, v: two row and two column operations
+        P[:3, :] += dt * P[3:6, :]
+        P[:, :3] += dt * P[:, 3:6]
         q = self.q
         P[:3, :3] += np.eye(3) * q * dt**3 / 3.0
         P[:3, 3:6] += np.eye(3) * q * dt**2 / 2.0
@@ -99,29 +94,36 @@ class AnchoredFilter:
         return float(y @ np.linalg.solve(S, y))
 
     def update(self, i: int, z: np.ndarray, R: np.ndarray) -> None:
-        """Kalman update with z_i = p - a_i (Joseph form: keeps P symmetric
-        and positive over long runs)."""
+        """Kalman update with z_i = p - a_i. H has two identity blocks, so
+        P H^T is two column blocks and the update costs O(n^2), not O(n^3):
+        P -= K (P H^T)^T, then symmetrised (the state holds up to a hundred
+        numbers with the key clones; the Joseph form's n^3 products cost
+        milliseconds)."""
         s = self._sl(i)
         y, S = self.innovation(i, z, R)
         PHt = self.P[:, :3] - self.P[:, s]  # P H^T with H = [I 0 .. -I ..]
         K = np.linalg.solve(S, PHt.T).T
         self.x += K @ y
-        # Joseph: (I - K H) P (I - K H)^T + K R K^T
-        IKH = np.eye(self.n)
-        IKH[:, :3] -= K
-        IKH[:, s] += K
-        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
-
-    def diffuse(self, i: int, Q: np.ndarray) -> None:
-        """The tracker's world drifted by an unknown step of covariance Q
-        relative to its anchor (it made a new key from a pose with that error)."""
-        s = self._sl(i)
-        self.P[s, s] += Q
+        self.P -= K @ PHt.T
+        self.P = 0.5 * (self.P + self.P.T)
 
     def anchor(self, i: int) -> None:
         """a_i := p (a clone: the anchor shares p's error)."""
+        self._clone(slice(0, 3), self._sl(i))
+
+    def copy(self, src: int, dst: int) -> None:
+        """a_dst := a_src (the same clone in another slot)."""
+        self._clone(self._sl(src), self._sl(dst))
+
+    def forget(self, i: int) -> None:
+        """Slot i no longer used: no state, no correlation."""
         s = self._sl(i)
-        self.x[s] = self.x[:3]
-        self.P[s, :] = self.P[:3, :]
-        self.P[:, s] = self.P[:, :3]
-        self.P[s, s] = self.P[:3, :3]
+        self.x[s] = 0.0
+        self.P[s, :] = 0.0
+        self.P[:, s] = 0.0
+
+    def _clone(self, src: slice, dst: slice) -> None:
+        self.x[dst] = self.x[src]
+        self.P[dst, :] = self.P[src, :]
+        self.P[:, dst] = self.P[:, src]
+        self.P[dst, dst] = self.P[src, src]

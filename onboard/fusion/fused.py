@@ -7,22 +7,33 @@ filter (onboard.fusion.filter.AnchoredFilter): position and velocity in the
 AHRS world W, one anchor per tracker. The attitude is the AHRS's (as NI-SLAM
 uses it); FastORB's own rotation only orients its motion between anchors.
 
+Each tracker is used for what it measures, never for a jump inside its own
+world (docs/fusion.md, "Discontinuities"):
+  - NI-SLAM tells its position relative to the key it matched
+    (`reference_offset_m`). The filter keeps a clone of each key's fused
+    position (made from the fused position of the frame the key was made at)
+    and measures z = R_i d = p - a_key: motion within a key, and across a new
+    key motion from that frame, so a key inherits the fused error, not
+    NI-SLAM's. When NI-SLAM re-uses a kept key whose clone is still held, the
+    same measurement against that old clone closes the loop (the drift since
+    comes out with the covariance the filter carried); without a clone, or
+    after a restart, the frame only ties it back in.
+  - FastORB tells its position in its map's world: motion since the fused
+    position at its last key; a re-localisation or a new map (its
+    reset_counter moved) only ties it back in.
+
 Per frame:
   1. both trackers track the frame (each in its own world);
   2. the filter predicts to the frame time;
-  3. each tracker with a trusted pose measures its motion since its anchor,
-     z_i = R_i (p_i - p_i(anchor)), R_i = R_W_C(AHRS) R_i_C^T at the anchor
-     (identity for NI-SLAM, whose rotation is the AHRS's), with a covariance
+  3. each tracker with a trusted pose measures its motion as above, rotated
+     into W (R_i = R_W_C(AHRS) R_i_C^T, followed slowly), with a covariance
      from its quality signals (onboard.fusion.measurements);
   4. gate: a measurement whose squared Mahalanobis distance to the
      prediction exceeds `gate_chi2` is left out, unless both trackers fail it
      and agree with each other (then the prediction was wrong, not they);
-  5. update with the rest; a tracker that made a new key drifts from there
-     (its anchor's covariance grows by its pose covariance); one that restarted
-     (its reset_counter moved), that comes back after a lost spell, or that
-     the gate left out `rejoin_after_frames` frames in a row is re-anchored:
-     its anchor becomes the fused position, so it is tied back into the
-     fused world without moving the output.
+  5. update with the rest; a tracker left out, restarted or back in a world
+     of its own is tied in at this frame (its anchor becomes the fused
+     position), so the output does not move.
 
 The output is the filter's position with its covariance (reported as
 `pose_var`, hence the ODOMETRY covariance) and the AHRS attitude. While at
@@ -69,17 +80,24 @@ def fusion_text(r: TrackResult) -> str:
 
 @dataclass
 class _Link:
-    """One tracker tied into the fused world through its anchor."""
+    """One tracker tied into the fused world: the fused position of the point
+    it measures its motion from (the anchor, a clone in the filter) and of its
+    last frame (a clone too, to promote when the tracker makes a new key)."""
 
     index: int
     tracker: Tracker
     anchored: bool = False
-    key_id: int = -1
+    anchor_slot: int = -1  # the filter slot of the clone it measures from
+    # A tracker that measures against keys: the fused clone of each key it
+    # may come back to, id -> (slot, its measurement there, its world position there).
+    keys: collections.OrderedDict = field(default_factory=collections.OrderedDict)
+    ref: tuple[int, int] = (0, -1)  # (reset counter, reference key) the anchor belongs to
     resets: int = 0
-    p_anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    o: np.ndarray = field(default_factory=lambda: np.zeros(3))  # its measurement at the anchor
+    p_anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))  # its world position there
+    m_last: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    p_last: np.ndarray = field(default_factory=lambda: np.zeros(3))
     R_map: np.ndarray = field(default_factory=lambda: np.eye(3))  # its world's axes in W
-    gated_run: int = 0  # frames in a row the gate left it out
-    fresh: str | None = None  # back from a lost spell or a restart: why (until measured again)
     used: int = 0
     left_out: collections.Counter = field(default_factory=collections.Counter)
     reanchors: collections.Counter = field(default_factory=collections.Counter)
@@ -90,9 +108,22 @@ class _Link:
     def name(self) -> str:
         return self.tracker.name
 
+    @property
+    def last_slot(self) -> int:
+        return 2 * self.index + 1
+
     def to_world(self, p: np.ndarray, R: np.ndarray, anchor_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A pose in the tracker's world, in W (through the anchor)."""
         return anchor_W + self.R_map @ (p - self.p_anchor), self.R_map @ R
+
+
+def _measured(r: TrackResult) -> tuple[np.ndarray, tuple[int, int], bool]:
+    """What the tracker measured this frame, the reference it measured it
+    against, and whether that is a key (True: the position relative to the
+    key, `reference_offset_m`) or its world (False: `p_W_m`)."""
+    if r.reference_offset_m is not None and r.reference_keyframe_id >= 0:
+        return np.asarray(r.reference_offset_m, dtype=np.float64), (r.reset_counter, r.reference_keyframe_id), True
+    return np.asarray(r.p_W_m, dtype=np.float64), (r.reset_counter, r.keyframe_id), False
 
 
 class FusedTracker:
@@ -103,13 +134,16 @@ class FusedTracker:
 
     def __init__(self, trackers: list[Tracker], params: FusionParams = FusionParams()) -> None:
         self.p = params
-        self.links = [_Link(i, t) for i, t in enumerate(trackers)]
-        self.filter = AnchoredFilter(len(trackers), params.accel_sd_m_s2)
+        self.links = [_Link(i, t, anchor_slot=2 * i) for i, t in enumerate(trackers)]
+        self.filter = AnchoredFilter(2 * len(trackers) + params.key_clones, params.accel_sd_m_s2)
+        self._free = list(range(2 * len(trackers), 2 * len(trackers) + params.key_clones))
         self._started = False
         self._lost = False
         self._last_update_s: float | None = None
         self._R_W_C: np.ndarray | None = None
         self.reset_counter = 0
+        self.noise_scale = 1.0  # both trackers' covariances times this (_adapt)
+        self._nis_mean = 3.0
         self.frames = 0
         self.coasted = 0
         self.last_part_ms: dict[str, float] = {}
@@ -126,6 +160,15 @@ class FusedTracker:
         self.last_part_ms["fusion"] = (time.perf_counter() - t0) * 1e3
         self.frames += 1
         return out
+
+    def backend_step(self) -> bool:
+        """One unit of a part's back-end work (FastORB's local mapping), for
+        the loop's idle time; False when no part has any."""
+        for link in self.links:
+            step = getattr(link.tracker, "backend_step", None)
+            if step is not None and step():
+                return True
+        return False
 
     def finish_frame(self) -> None:
         """Each tracker's work for the next frames, after the pose went out."""
@@ -148,7 +191,8 @@ class FusedTracker:
                 "reanchored": dict(link.reanchors),
                 "nis_mean": link.nis_sum / link.nis_n if link.nis_n else None,
             }
-        return {"frames": self.frames, "frames_coasted": self.coasted, "trackers": per}
+        return {"frames": self.frames, "frames_coasted": self.coasted,
+                "noise_scale": round(self.noise_scale, 3), "trackers": per}
 
     # ------------------------------------------------------------- fusion
     def _fuse(self, t_s: float, results: list[TrackResult], attitude: AttitudeSource) -> TrackResult:
@@ -166,60 +210,52 @@ class FusedTracker:
         else:
             self.filter.predict(t_s)
 
-        measured: list[tuple[_Link, TrackResult, np.ndarray, np.ndarray, float]] = []
-        to_anchor: list[tuple[_Link, TrackResult, str | None]] = []
+        measured: list[tuple] = []
+        to_anchor: list[tuple[_Link, TrackResult, str]] = []
         for link, r, ok in zip(self.links, results, trusted):
             if not ok:
                 reason = f"lost: {r.lost_reason or 'untrusted'}"
                 link.left_out[reason] += 1
                 left_out.append((link.name, reason))
-                link.fresh = link.fresh or "back after lost"
                 continue
+            m, ref, keyed = _measured(r)
             if not link.anchored:
                 to_anchor.append((link, r, "joined"))
                 continue
-            if r.reset_counter != link.resets:
-                # Re-localised into its map, or a new map: where it stands in
-                # its world is now known only to `rejoin_sd_m` (its map is
-                # off by different amounts in different places), so it is
-                # measured against its anchor loosened by that much.
-                link.resets = r.reset_counter
-                link.fresh = "restarted"
-                self.filter.diffuse(link.index, np.eye(3) * self.p.rejoin_sd_m**2)
-            R = COVARIANCE_MODELS.get(link.name, COVARIANCE_MODELS["fastorb"])(r, self.p)
+            why = self._reference(link, r, m, ref, keyed)
+            if why is not None:
+                link.left_out[why] += 1
+                left_out.append((link.name, why))
+                to_anchor.append((link, r, why))
+                continue
+            R = COVARIANCE_MODELS.get(link.name, COVARIANCE_MODELS["fastorb"])(r, self.p) * self.noise_scale
             if not np.all(np.isfinite(R)):
                 link.left_out["no covariance"] += 1
                 left_out.append((link.name, "no covariance"))
+                to_anchor.append((link, r, "no covariance"))
                 continue
-            z = link.R_map @ (r.p_W_m - link.p_anchor)
-            measured.append((link, r, z, R, self.filter.nis(link.index, z, R)))
+            z = link.R_map @ (m - link.o)
+            measured.append((link, r, z, R, self.filter.nis(link.anchor_slot, z, R), m))
 
-        for link, r, z, R, nis in measured:
+        for link, r, *_ in measured:
             self._follow_axes(link, r, R_att)
         accepted, gated = self._gate(measured)
-        for link, r, z, R, nis in accepted:
-            self.filter.update(link.index, z, R)
+        for k, (link, r, z, R, nis, m) in enumerate(accepted):
+            if k == 1:
+                self._adapt(self.filter.nis(link.anchor_slot, z, R))
+            self.filter.update(link.anchor_slot, z, R)
             link.used += 1
-            link.gated_run = 0
-            link.fresh = None  # back in the world it had: its anchor holds
             link.nis_sum += nis
             link.nis_n += 1
-        for link, r, z, R, nis in gated:
-            # Back from a restart or a lost spell in a world of its own (a new
-            # map, a restart at a stale position): tied back in at once.
-            why = link.fresh or GATED
-            link.gated_run += 1
-            link.left_out[why] += 1
-            left_out.append((link.name, f"{why}, chi2 {nis:.0f}"))
-            log.debug("t=%.3f: %s left out (%s), chi2 %.1f", t_s, link.name, why, nis)
-            if link.fresh is not None or link.gated_run >= self.p.rejoin_after_frames:
-                to_anchor.append((link, r, link.fresh or "disagreed"))
-        # A new key: the tracker's world drifts from here by the error of the
-        # pose the key was made at (filter docstring).
-        for link, r, z, R, nis in accepted + gated:
-            if r.keyframe_id != link.key_id and not r.keyframe_reused:
-                self.filter.diffuse(link.index, R * self.p.key_drift_scale)
-            link.key_id = r.keyframe_id
+        for link, r, z, R, nis, m in gated:
+            # Its motion disagrees with the other tracker and the motion
+            # model: left out, and it goes on from here.
+            link.left_out[GATED] += 1
+            left_out.append((link.name, f"{GATED}, chi2 {nis:.0f}"))
+            log.debug("t=%.3f: %s left out (gate), chi2 %.1f", t_s, link.name, nis)
+            to_anchor.append((link, r, "disagreed"))
+        for link, r, z, R, nis, m in accepted:
+            self._keep_last(link, r, m)
         for link, r, why in to_anchor:
             self._anchor(link, r, R_att, why)
 
@@ -236,6 +272,76 @@ class FusedTracker:
         tied = [r for _, r, _ in to_anchor]
         return self._result(t_s, results, R_att, accepted, tied, contributors, tuple(left_out))
 
+    def _adapt(self, nis: float) -> None:
+        """Scale both trackers' covariances so that they agree with each
+        other as they claim (innovation-based adaptive estimation, Mehra
+        1972): the second tracker's motion, once the first has updated the
+        filter, is off by its own error and the first's, and its squared
+        Mahalanobis distance averages 3 (3 dof) when the covariances are
+        right. Their quality signals see the noise of a match, not what real
+        data adds (a depth sensor's distortion, a shutter's timing), which on
+        tum_fr1_rpy is several times larger. A slow step towards the scale
+        that makes the mean 3; never below 1 (the signals' own figures)."""
+        if not math.isfinite(nis):
+            return
+        g = self.p.noise_adapt_gain
+        self._nis_mean += g * (min(nis, 10.0 * self.p.gate_chi2) - self._nis_mean)
+        self.noise_scale = float(np.clip(self.noise_scale * (self._nis_mean / 3.0) ** g,
+                                          1.0, self.p.noise_scale_max))
+
+    def _reference(self, link: _Link, r: TrackResult, m: np.ndarray, ref: tuple[int, int],
+                   keyed: bool) -> str | None:
+        """Point the tracker's anchor at the clone its measurement this frame
+        is relative to; None, or why this frame can only tie it back in.
+
+        A jump inside the tracker's own world is no motion. A tracker that
+        measures against keys (NI-SLAM) tells its position relative to the
+        key: on the same key that is motion since the key's clone; on a new
+        key, made at its last frame, motion since that frame's fused position
+        (the key inherits the fused error there, not the tracker's); on a key
+        kept from before whose clone is kept too, a loop closure: its offset
+        to that key ties the fused position to where that key was, with the
+        covariance the filter carried since. A tracker that measures in its
+        own world (FastORB) gives motion while its world stays (its reset
+        counter unchanged); a restart or a re-localisation only ties it back in."""
+        restarted = r.reset_counter != link.resets
+        if keyed:
+            key = ref[1]
+            if key == link.ref[1]:
+                link.ref = ref
+                return None
+            if key in link.keys:  # back on a key cloned before
+                link.keys.move_to_end(key)
+                link.anchor_slot, o, link.p_anchor = link.keys[key]
+                link.o, link.ref, link.resets = o.copy(), ref, r.reset_counter
+                return None
+            if restarted or r.keyframe_reused:
+                return "restarted" if restarted else "key re-used"
+            slot = self._key_slot(link, key)
+            self.filter.copy(link.last_slot, slot)
+            link.anchor_slot, link.o, link.p_anchor, link.ref = slot, np.zeros(3), link.p_last.copy(), ref
+            link.keys[key] = (slot, link.o, link.p_anchor)
+            return None
+        if restarted:
+            return "restarted"
+        if ref != link.ref:
+            # Its newest key changed: its world is continuous there, so its
+            # motion goes on from its last frame.
+            self.filter.copy(link.last_slot, link.anchor_slot)
+            link.o, link.p_anchor, link.ref = link.m_last.copy(), link.p_last.copy(), ref
+        return None
+
+    def _key_slot(self, link: _Link, key: int) -> int:
+        """A filter slot for `key`'s clone: its own, a free one, or the one of
+        the key least recently used (the trackers keep few keys)."""
+        if key in link.keys:
+            return link.keys.pop(key)[0]
+        if not self._free:
+            old = next(iter(link.keys))
+            self._free.append(link.keys.pop(old)[0])
+            self.filter.forget(self._free[-1])
+        return self._free.pop()
+
     def _gate(self, measured: list) -> tuple[list, list]:
         """(accepted, left out) by the chi-square gate (module docstring, step 4)."""
         g = self.p.gate_chi2
@@ -249,7 +355,7 @@ class FusedTracker:
         """Whether two measurements put the position at the same place: each
         gives p = a_i + z_i; their difference against its covariance."""
         f = self.filter
-        s1, s2 = f._sl(m1[0].index), f._sl(m2[0].index)
+        s1, s2 = f._sl(m1[0].anchor_slot), f._sl(m2[0].anchor_slot)
         d = (f.x[s1] + m1[2]) - (f.x[s2] + m2[2])
         S = f.P[s1, s1] + f.P[s2, s2] - f.P[s1, s2] - f.P[s2, s1] + m1[3] + m2[3]
         return float(d @ np.linalg.solve(S, d)) <= self.p.gate_chi2
@@ -265,7 +371,9 @@ class FusedTracker:
         self._started, self._lost = True, False
         self._last_update_s = t_s
         for link in self.links:
-            link.anchored, link.fresh = False, None
+            link.anchored = False
+            self._free += [slot for slot, *_ in link.keys.values()]
+            link.keys.clear()
 
     def _follow_axes(self, link: _Link, r: TrackResult, R_att: np.ndarray | None) -> None:
         """Refine the tracker's axes in W, R_i = mean of R_W_C(AHRS) R_i_C^T: one
@@ -278,20 +386,29 @@ class FusedTracker:
         d = so3_log(link.R_map.T @ R_att @ np.asarray(r.R_W_C).T)
         link.R_map = link.R_map @ Rotation.from_rotvec(self.p.axes_gain * d).as_matrix()
 
-    def _anchor(self, link: _Link, r: TrackResult, R_att: np.ndarray | None, why: str | None) -> None:
-        self.filter.anchor(link.index)
+    def _keep_last(self, link: _Link, r: TrackResult, m: np.ndarray) -> None:
+        """Clone the fused position of this frame as the tracker's last."""
+        self.filter.anchor(link.last_slot)
+        link.m_last, link.p_last = m.copy(), np.asarray(r.p_W_m, dtype=np.float64).copy()
+
+    def _anchor(self, link: _Link, r: TrackResult, R_att: np.ndarray | None, why: str) -> None:
+        """Tie the tracker in at this frame: what it measures now is where the
+        fused position is (after this frame's updates), so the output does not move."""
+        m, ref, keyed = _measured(r)
+        if keyed:
+            link.anchor_slot = self._key_slot(link, ref[1])
+        self.filter.anchor(link.anchor_slot)
+        self._keep_last(link, r, m)
         link.anchored = True
-        link.key_id = r.keyframe_id
-        link.resets = r.reset_counter
-        link.gated_run = 0
-        link.fresh = None
-        link.p_anchor = np.asarray(r.p_W_m, dtype=np.float64).copy()
+        link.ref, link.resets, link.o = ref, r.reset_counter, m.copy()
+        link.p_anchor = link.p_last.copy()
+        if keyed:
+            link.keys[ref[1]] = (link.anchor_slot, link.o, link.p_anchor)
         if R_att is not None:  # without the AHRS the last mapping stays
             link.R_map = R_att @ np.asarray(r.R_W_C).T
-        if why is not None:
-            link.reanchors[why] += 1
-            if why != "joined" or self.frames > 0:
-                log.info("%s tied back into the fused world (%s)", link.name, why)
+        link.reanchors[why] += 1
+        if why != "joined" or self.frames > 0:
+            log.debug("%s tied back into the fused world (%s)", link.name, why)
 
     # ------------------------------------------------------------- results
     def _attitude(self, results: list[TrackResult], R_att: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -353,6 +470,6 @@ class FusedTracker:
 
     def _cloud_into_world(self, cloud: KeyframeCloud) -> KeyframeCloud:
         link = self.links[0]
-        a = self.filter.x[self.filter._sl(0)]
+        a = self.filter.x[self.filter._sl(link.anchor_slot)]
         p, R = link.to_world(cloud.p_W_m, cloud.R_W_C, a)
         return dataclasses.replace(cloud, p_W_m=p, R_W_C=R)

@@ -20,13 +20,13 @@ class FusionParams:
     # Gate: a tracker's motion whose squared Mahalanobis distance to the
     # prediction (3 dof) exceeds this is left out (12: chi-square 99.3 %).
     gate_chi2: float = 12.0
-    rejoin_sd_m: float = 0.1  # a tracker that restarted: its world's offset known to this sd
-    rejoin_after_frames: int = 3  # left out by the gate this many frames in a row: re-anchored
+    key_clones: int = 24  # fused positions of a tracker's keys kept for it to come back to
+    noise_adapt_gain: float = 0.02  # per frame both trackers measure: step of the covariance scale (fused._adapt)
+    noise_scale_max: float = 100.0  # ... up to this many times their own figures
     # Measurement noise (onboard.fusion.measurements), scaled; the defaults put
     # the reported 1 sigma over 55-81 % of the error on the synthetic flights.
     nislam_var_scale: float = 1.0
     fastorb_var_scale: float = 4.0
-    key_drift_scale: float = 1.0  # a new key: the tracker's world drifts by its pose covariance times this
     nislam_peak_cells: float = 0.3  # NI-SLAM lateral sd at a firm peak [cells of the key's resolution]
     psr_full: float = 60.0  # ... growing as psr_full / PSR below this PSR
     nislam_cells_per_sample: float = 64.0  # NI-SLAM depth: well-matched cells per independent sample

@@ -91,6 +91,12 @@ class SwitchingTracker:
         assert self.fallback is not None
         return self._into_world(self.fallback.track(frame, attitude))
 
+    def backend_step(self) -> bool:
+        """One unit of the active tracker's back-end work (FastORB's local
+        mapping), for the loop's idle time; False when it has none."""
+        step = getattr(self.fallback or self.primary, "backend_step", None)
+        return bool(step()) if step is not None else False
+
     def finish_frame(self) -> None:
         """The trackers' work for the next frames, after the pose went out."""
         for tracker in (self.primary, self.fallback):

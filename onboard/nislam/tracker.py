@@ -44,6 +44,7 @@ from onboard.nislam.projection import (
     make_cloud,
     project,
 )
+from onboard.nislam.shutter import rolling_shutter_cloud
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +143,13 @@ class NislamTracker:
             frame.bgr, frame.depth_m, self.intr, self.p.min_depth_m, self.p.max_depth_m,
             self.p.pixel_stride, r_cd,
         )
+        if self.p.rolling_shutter_readout_s != 0.0:
+            # Rows exposed one after another: each brought to the middle row's
+            # instant, the one the attitude is looked up at (nislam/shutter.py).
+            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
+            if w is not None:
+                cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
+                                              self.intr.height, self.p.pixel_stride)
         min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
         if len(cloud) < min_points:
             return self._lost_result(frame.t_s, "too few depth pixels")
@@ -205,6 +213,7 @@ class NislamTracker:
             finished_keyframes=tuple(finished),
             keyframe_reused=reused,
             reference_keyframe_id=key.keyframe_id,
+            reference_offset_m=outcome.p_W_m - key.p_W_m,
         )
 
     def _count_jump(self, p_W_m: np.ndarray, t_s: float) -> None:
@@ -386,6 +395,7 @@ class NislamTracker:
             matched_cells=0,
             finished_keyframes=tuple(finished),
             reference_keyframe_id=self._key.keyframe_id,
+            reference_offset_m=np.zeros(3),
         )
 
     def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:

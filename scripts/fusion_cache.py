@@ -1,0 +1,161 @@
+"""Tune the fused tracker offline: run each tracker over a sequence once,
+keep its per-frame TrackResults, then replay the fusion alone on them
+(seconds per try instead of minutes).
+
+    python scripts/fusion_cache.py record SEQ CACHE.pkl [--set section.key=value ...]
+    python scripts/fusion_cache.py fuse CACHE.pkl [CACHE2.pkl ...] [--set fusion.key=value ...]
+
+`record` runs NI-SLAM and FastORB separately on every frame of SEQ (the fused
+tracker runs them independently too, so their results are the same) with the
+replay's attitude source, and pickles the results (key-frame clouds dropped),
+the attitude and the ground truth. `fuse` runs onboard.fusion.fused on each
+cache and prints ATE, per-frame RPE (lags 1/3/10/30 frames), path ratio,
+sigma-1 coverage, posed share and resets, with the trackers alone for
+reference (each scored the same way).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from onboard.app.bench import attitude_error_model
+from onboard.app.config import load_config
+from onboard.app.replay import TrackLog, evaluate_track
+from onboard.core.evaluation import ground_truth_at
+from onboard.fusion.coverage import sigma1_coverage
+from onboard.fusion.fused import FusedTracker
+from onboard.fusion.params import FusionParams
+from onboard.fusion.registry import make_tracker
+from sim_replay.attitude import attitude_for_replay
+from sim_replay.tum import open_sequence
+
+TRACKERS = ("nislam", "fastorb")
+
+
+def _overrides(pairs: list[str]) -> dict[str, str]:
+    return dict(p.split("=", 1) for p in pairs)
+
+
+def record(seq_dir: str, out: str, sets: list[str]) -> None:
+    cfg = load_config(None, _overrides(sets))
+    seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
+    attitude, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s)
+    frames = list(seq.frames())
+    results: dict[str, list] = {}
+    for name in TRACKERS:
+        tracker = make_tracker(name, seq.intrinsics, cfg)
+        t0 = time.perf_counter()
+        results[name] = [dataclasses.replace(tracker.track(f, attitude), finished_keyframes=())
+                         for f in frames]
+        print(f"{seq_dir}: {name} {len(frames)} frames in {time.perf_counter() - t0:.0f} s",
+              file=sys.stderr)
+    with open(out, "wb") as fh:
+        pickle.dump({"seq": str(seq_dir), "t_s": [f.t_s for f in frames], "attitude": attitude,
+                     "groundtruth": seq.groundtruth, "results": results}, fh)
+
+
+class _Cached:
+    """A tracker that returns recorded results in order."""
+
+    def __init__(self, name: str, results: list) -> None:
+        self.name = name
+        self._it = iter(results)
+
+    def track(self, frame, attitude):
+        return next(self._it)
+
+    def finish(self) -> None:
+        return None
+
+
+@dataclasses.dataclass
+class _Frame:
+    t_s: float
+
+
+@dataclasses.dataclass
+class _Seq:
+    groundtruth: object
+
+
+def score(results: list, gt) -> dict[str, float | None]:
+    log = TrackLog()
+    for r in results:
+        log.frame_ms.append(0.0)
+        if r.trusted:
+            log.t_s.append(r.t_s)
+            log.p_W_m.append(r.p_W_m)
+            log.q_W_C_xyzw.append(r.q_W_C_xyzw)
+            log.reference_keyframe_id.append(r.reference_keyframe_id)
+            log.var_p_m2.append(np.asarray(r.pose_var[:3], dtype=np.float64))
+    ev = evaluate_track(log, _Seq(gt), 0.1)  # type: ignore[arg-type]
+    m = ev.metrics.as_dict() if ev.metrics is not None else {}
+    est = log.trajectory()
+    g, valid = ground_truth_at(est.t_s, gt, 0.1)
+    var = np.asarray(log.var_p_m2).reshape(-1, 3)[valid]
+    return {"ate": m.get("ate_rmse_m"), "posed": len(log.t_s) / len(results),
+            "resets": results[-1].reset_counter,
+            **{f"rpe{k}": m.get(f"rpe_lag{k}_m") for k in (1, 3, 10, 30)},
+            "path": m.get("path_length_ratio"),
+            "cov": sigma1_coverage(est.p_xyz_m[valid], var, g.p_xyz_m)}
+
+
+def fuse(cache: dict, params: FusionParams) -> tuple[list, dict, float]:
+    trackers = [_Cached(n, cache["results"][n]) for n in TRACKERS]
+    fused = FusedTracker(trackers, params)  # type: ignore[arg-type]
+    t0 = time.perf_counter()
+    out = [fused.track(_Frame(t), cache["attitude"]) for t in cache["t_s"]]  # type: ignore[arg-type]
+    ms = (time.perf_counter() - t0) * 1e3 / len(out)
+    return out, fused.stats(), ms
+
+
+def _line(label: str, s: dict) -> str:
+    def mm(v: float | None) -> str:
+        return "   -  " if v is None else f"{v * 1e3:6.1f}"
+    cov = "  -" if s["cov"] is None else f"{100 * s['cov']:3.0f}"
+    path = "  -  " if s["path"] is None else f"{s['path']:.3f}"
+    return (f"{label:28s} ATE {mm(s['ate'])} mm  posed {100 * s['posed']:5.1f} %  resets "
+            f"{s['resets']:3d}  RPE1/3/10/30 {mm(s['rpe1'])}{mm(s['rpe3'])}{mm(s['rpe10'])}"
+            f"{mm(s['rpe30'])} mm  path {path}  cov {cov} %")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record")
+    r.add_argument("seq")
+    r.add_argument("out")
+    r.add_argument("--set", action="append", default=[])
+    f = sub.add_parser("fuse")
+    f.add_argument("caches", nargs="+")
+    f.add_argument("--set", action="append", default=[])
+    f.add_argument("--alone", action="store_true", help="also score each tracker alone")
+    a = ap.parse_args()
+    if a.cmd == "record":
+        record(a.seq, a.out, a.set)
+        return
+    fusion_sets = {k.removeprefix("fusion."): v for k, v in _overrides(a.set).items()}
+    base = FusionParams()
+    params = dataclasses.replace(base, **{k: type(getattr(base, k))(v) for k, v in fusion_sets.items()})
+    for path in a.caches:
+        with open(path, "rb") as fh:
+            cache = pickle.load(fh)
+        name = Path(path).stem
+        if a.alone:
+            for n in TRACKERS:
+                print(_line(f"{name} {n}", score(cache["results"][n], cache["groundtruth"])))
+        out, stats, ms = fuse(cache, params)
+        s = score(out, cache["groundtruth"])
+        left = {n: sum(t["left_out"].values()) for n, t in stats["trackers"].items()}
+        print(_line(f"{name} fused", s) + f"  {ms:.2f} ms/frame  left out {left}  scale {stats['noise_scale']}")
+
+
+if __name__ == "__main__":
+    main()

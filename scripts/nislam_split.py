@@ -1,0 +1,123 @@
+"""Where NI-SLAM's frame-to-frame error comes from on a sequence with ground truth.
+
+    .venv/bin/python scripts/nislam_split.py SEQ_DIR [--set KEY=VALUE ...] [--noise-deg X] [--seed N]
+
+Replays SEQ_DIR (TUM layout, attitude from attitude.txt or the ground truth)
+with NI-SLAM and splits the lag-1 translation error (docs/nislam-error-budget.md,
+"The remaining error on tum_fr1_rpy, split"):
+  - pairs of frames matched against the same key, and across key changes
+    (a re-used kept key, or a new key);
+  - the same-key lateral error (the tracker's increment against the key,
+    t = (-du s, -dv s, t_z), against the true motion since the key's frame in
+    the key's true axes) along and across the direction the frame-to-frame
+    rotation moves the content ("flow": rotation x mean depth), by flow;
+  - the error against the key per key axis (systematic; what new keys inherit).
+--set overrides [nislam] parameters (numbers or true/false).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import onboard.nislam.tracker as tracker_mod  # noqa: E402
+from onboard.nislam.params import NislamParams  # noqa: E402
+from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay  # noqa: E402
+from sim_replay.tum import open_sequence  # noqa: E402
+
+
+def _value(text: str):
+    if text in ("true", "false"):
+        return text == "true"
+    return float(text) if any(c in text for c in ".e") else int(text)
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x**2))) * 1e3 if len(x) else float("nan")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("seq", type=Path)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--noise-deg", type=float, default=0.0)
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    over = {k: _value(v) for k, v in (s.split("=", 1) for s in args.set)}
+    params = dataclasses.replace(NislamParams(), **over)
+    seq = open_sequence(args.seq)
+    att, _ = attitude_for_replay(seq, AttitudeErrorModel(noise_deg=args.noise_deg, seed=args.seed))
+    depth_of = {}
+    original = tracker_mod.depth_translation
+
+    def depth_translation(*a, **k):  # the matched cells' mean key depth, per frame
+        fit = original(*a, **k)
+        depth_of["z"] = None if fit is None else fit.z_mean_m
+        return fit
+
+    tracker_mod.depth_translation = depth_translation
+    tr = tracker_mod.NislamTracker(seq.intrinsics, params)
+    rows, key_t = [], {}
+    for frame in seq.frames():
+        r = tr.track(frame, att)
+        if r.new_keyframe:
+            key_t[r.keyframe_id] = r.t_s
+        if r.trusted and depth_of.get("z") is not None:
+            rows.append((r, key_t.get(r.reference_keyframe_id, np.nan), depth_of["z"]))
+    gt = seq.groundtruth
+    sl = Slerp(gt.t_s, Rotation.from_quat(gt.q_xyzw))
+    t = np.array([r.t_s for r, _, _ in rows])
+    kt = np.array([k for _, k, _ in rows])
+    ok = np.isfinite(kt) & (t >= gt.t_s[0]) & (t <= gt.t_s[-1]) & (kt >= gt.t_s[0])
+    t, kt = t[ok], kt[ok]
+    rows = [x for x, keep in zip(rows, ok) if keep]
+    ref = np.array([r.reference_keyframe_id for r, _, _ in rows])
+
+    def pos(ts):
+        return np.stack([np.interp(ts, gt.t_s, gt.p_xyz_m[:, i]) for i in range(3)], axis=1)
+
+    r_f, r_k = sl(t), sl(kt)
+    est = np.array([r.p_W_m for r, _, _ in rows])
+    true_p = pos(t)
+    step = r_f[:-1].inv().apply((est[1:] - est[:-1]) - (true_p[1:] - true_p[:-1]))
+    n = np.linalg.norm(step, axis=1)
+    same = ref[1:] == ref[:-1]
+    reused = np.array([r.keyframe_reused for r, _, _ in rows])[1:]
+    print(f"{len(rows)} frames; lag-1 RPE {_rms(n):.2f} mm: same key {_rms(n[same]):.2f} "
+          f"({same.sum()} pairs), key changes {_rms(n[~same]):.2f} ({(~same).sum()}: "
+          f"re-used {_rms(n[~same & reused]):.2f} x {(~same & reused).sum()}, "
+          f"new {_rms(n[~same & ~reused]):.2f} x {(~same & ~reused).sum()}); "
+          f"share of the squared error at changes {np.sum(n[~same] ** 2) / np.sum(n ** 2):.2f}")
+    meas = np.array([(-r.shift_cells[0] * r.res_m, -r.shift_cells[1] * r.res_m, r.tz_m)
+                     for r, _, _ in rows])
+    inc_err = meas - r_k.inv().apply(true_p - pos(kt))
+    print("error against the key, key axes x / y / z: "
+          + " / ".join(f"{_rms(inc_err[:, i]):.1f}" for i in range(3)) + " mm")
+    i = np.flatnonzero(same) + 1
+    de = inc_err[i] - inc_err[i - 1]
+    w = (r_k[i].inv() * r_f[i] * r_f[i - 1].inv() * r_k[i]).as_rotvec()  # frame-to-frame, key axes
+    z = np.array([d for _, _, d in rows])[i]
+    flow = np.stack([w[:, 1], -w[:, 0]], axis=1) * z[:, None]
+    fn = np.linalg.norm(flow, axis=1)
+    u = flow / np.maximum(fn[:, None], 1e-12)
+    along = np.sum(de[:, :2] * u, axis=1)
+    across = de[:, 1] * u[:, 0] - de[:, 0] * u[:, 1]
+    print(f"same-key lateral lag-1 {_rms(np.linalg.norm(de[:, :2], axis=1)):.2f} mm: along the "
+          f"rotation's flow {_rms(along):.2f}, across {_rms(across):.2f}; axial {_rms(de[:, 2]):.2f}")
+    print("| flow per frame | pairs | along mm | across mm | axial mm |\n|---|---|---|---|---|")
+    for lo, hi in ((0.0, 0.02), (0.02, 0.04), (0.04, 0.07), (0.07, np.inf)):
+        m = (fn >= lo) & (fn < hi)
+        print(f"| {lo * 1e3:.0f}-{hi * 1e3:.0f} mm | {m.sum()} | {_rms(along[m]):.2f} | "
+              f"{_rms(across[m]):.2f} | {_rms(de[m, 2]):.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
