@@ -118,12 +118,14 @@ def score_flight(
     d = d[np.isfinite(d).all(axis=1)]
     new = sum(1 for r in rows if r.new_keyframe)
     return {
-        "rpe1": m.rpe_lag1_m, "rpe10": m.rpe_lag10_m,
+        "rpe1": m.rpe_lag1_m, "rpe3": m.rpe_lag3_m, "rpe10": m.rpe_lag10_m, "rpe30": m.rpe_lag30_m,
         "lat": float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))) if len(d) else float("nan"),
         "ax": float(np.sqrt(np.mean(d[:, 2] ** 2))) if len(d) else float("nan"),
         "jump": m.keyframe_jump_median_m, "ate": m.ate_rmse_m, "ratio": m.path_length_ratio,
         "tracked": len(rows) / max(min(len(seq), max_frames or len(seq)), 1), "keys": f"{new}/{m.keyframe_changes}",
         "res_mm": float(np.median([r.res_m for r in rows])) * 1e3,
         "arrays": {"t_s": est.t_s, "increment_error_m": inc_err, "same_key": same,
-                   "reference_keyframe_id": ref, "res_m": np.array([r.res_m for r in rows])},
+                   "reference_keyframe_id": ref, "res_m": np.array([r.res_m for r in rows]),
+                   "shift_cells": np.array([r.shift_cells for r in rows]).reshape(-1, 2),
+                   "tz_m": np.array([r.tz_m for r in rows])},
     }

@@ -174,6 +174,8 @@ def test_fastorb_replay_tracks_the_fixture(fixture_seq: Path, tmp_path: Path) ->
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames_tracked"] == metrics["frames"] > 0
     assert metrics["ate_rmse_m"] < 0.05
+    # loop closing ran (on by default) and the final trajectory was scored
+    assert metrics["loops_detected"] is not None and metrics["ate_final_rmse_m"] < 0.05
 
 
 def test_replay_without_groundtruth(fixture_seq: Path, tmp_path: Path) -> None:

@@ -3,6 +3,8 @@ missing, one world for the outputs, reset_counter bumped at each switch."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from fake_results import track_result
 from scipy.spatial.transform import Rotation
@@ -123,3 +125,39 @@ def test_without_a_fallback_the_primary_reports_lost_and_restarts() -> None:
     lost = [r for r in results if not r.trusted]
     assert lost and all(r.lost_reason == NO_ATTITUDE for r in lost)
     assert results[-1].reset_counter == 1 and tracker.switches == 0
+
+
+class LoopingFallback(Fallback):
+    """A fallback that has closed 5 loops before it is switched to (a count a
+    switch must not read as new), and closes one more at `loop_at_s`, moving a
+    key frame that sits at the true pose of time 1.2 s."""
+
+    def __init__(self, loop_at_s: float) -> None:
+        super().__init__()
+        self.loop_at_s = loop_at_s
+
+    def track(self, frame: RgbdFrame, attitude: Attitude) -> TrackResult:
+        result = super().track(frame, attitude)
+        closed = frame.t_s >= self.loop_at_s
+        moved = ()
+        if closed and frame.t_s < self.loop_at_s + DT / 2:
+            p, R = truth(1.2)
+            R0, p0 = self.T
+            moved = ((7, R0.T @ (p - p0), R0.T @ R),)
+        return dataclasses.replace(result, loop_corrections=5 + int(closed), moved_keyframes=moved)
+
+
+def test_loop_corrections_count_once_and_moved_keys_come_into_our_world() -> None:
+    tracker = SwitchingTracker(Primary(), lambda: LoopingFallback(loop_at_s=1.5), return_after_s=0.5)
+    results = run(tracker, Attitude((1.0, 2.0)), 120)
+    counts = [r.loop_corrections for r in results]
+    i_loop = int(round(1.5 / DT))
+    # The switch in (at 1.0 s) and back (2.5 s) change nothing; the loop counts once.
+    assert counts[:i_loop] == [0] * i_loop and set(counts[i_loop:]) == {1}
+    [moved] = [r.moved_keyframes for r in results if r.moved_keyframes]
+    (key_id, p_W, R_W), = moved
+    assert key_id == 7
+    step = np.linalg.norm(truth(DT)[0] - truth(0.0)[0])
+    assert np.linalg.norm(p_W - truth(1.2)[0]) < 2.5 * step  # in the outputs' world, not FastORB's
+    R_err = R_W.T @ truth(1.2)[1]
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(R_err).as_rotvec())) < 1.1

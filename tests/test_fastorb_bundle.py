@@ -93,3 +93,22 @@ def test_local_ba_in_steps_and_nothing_to_do() -> None:
     assert np.linalg.norm(inverse(ba.result().T_cw[3])[:3, 3] - inverse(T_true[3])[:3, 3]) < 1e-3
     problem.fixed[:] = True
     assert LocalBundle(problem, K).done
+
+
+def test_stereo_noise_model_and_estimated_sigmas() -> None:
+    """Pixels with a 0.2 px sd and disparities with a 0.8 px sd: the BA's
+    second stage estimates both within 25 % (estimate_sigmas), and the
+    stereo factor's covariance keeps them apart (the old isotropic 1 px on
+    (u_L, u_R, v) could not tell them)."""
+    T_true, xyz_true, (kf, lm, uv, z) = _problem(3)
+    rng = np.random.default_rng(4)
+    bf = 400.0
+    uv = uv + rng.normal(0, 0.2, uv.shape)
+    z = bf / (bf / z + rng.normal(0, 0.8, z.shape))
+    fixed = np.array([True, True, False, False, False, False])
+    problem = BaProblem(np.arange(6), T_true.copy(), fixed, np.arange(len(xyz_true)),
+                        xyz_true.copy(), kf, lm, uv, z)
+    ba = LocalBundle(problem, K, BaSettings(bf_px=bf, max_depth_m=10.0, estimate_sigmas=True))
+    ba.run()
+    print("estimated sds:", ba.pixel_sigma, ba.disparity_sigma)
+    assert abs(ba.pixel_sigma - 0.2) < 0.05 and abs(ba.disparity_sigma - 0.8) < 0.2

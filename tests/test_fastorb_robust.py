@@ -104,3 +104,10 @@ def test_local_ba_runs_in_slices_and_keeps_the_poses() -> None:
     assert all(r.trusted for r in results)
     errs = _relative_errors(results, poses)
     assert max(e[0] for e in errs) < 2.0 and max(e[1] for e in errs) < 0.1
+    # One observation per landmark and key frame in a BA, though a key frame
+    # keeps a row per keypoint (several pyramid levels on one corner).
+    job = stepped.mapping._build(stepped._map.newest.keyframe_id)
+    p = job.bundle.problem
+    pairs = p.obs_kf * (len(p.lm_ids) + 1) + p.obs_lm
+    assert len(np.unique(pairs)) == len(pairs)
+    assert any(len(np.unique(k.ids)) < len(k.ids) for k in stepped._map.keyframes())

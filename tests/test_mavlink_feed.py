@@ -160,6 +160,22 @@ def test_reset_counter_and_states_follow_the_tracker() -> None:
     assert feed.quality == 40
 
 
+def test_a_loop_closure_is_announced_as_a_reset() -> None:
+    """A loop correction steps the pose by the drift it removed (here 4 cm,
+    under jump_m, so the jump rule alone would let the autopilot fuse it as
+    motion): the first pose after loop_corrections went up carries
+    reset_counter + 1, once, with a STATUSTEXT saying why."""
+    feed = VisionFeed(np.eye(3), jump_m=0.1)
+    xs = [0.01 * i for i in range(5)] + [0.04 + 0.04 + 0.01 * i for i in range(5)]
+    loops = [0] * 5 + [1] * 5
+    events = [feed.update(dataclasses.replace(track_result(i * DT, [x, 0.0, 0.0]),
+                                              loop_corrections=n))
+              for i, (x, n) in enumerate(zip(xs, loops))]
+    assert [e.sample.reset_counter for e in events] == [0] * 5 + [1] * 5
+    assert feed.resets == 1
+    assert [t for e in events for _sev, t in e.notices] == ["reset 1: loop closure"]
+
+
 def test_slow_moves_are_not_jumps_and_the_counter_wraps() -> None:
     feed = VisionFeed(np.eye(3), jump_m=0.1, jump_speed_m_s=10.0)
     feed.update(track_result(0.0, [0, 0, 0]))

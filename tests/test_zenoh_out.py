@@ -3,6 +3,7 @@ publisher with `nislam listen` as the subscriber in another process."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import socket
@@ -252,6 +253,37 @@ def test_queryable_answers_per_key_frame() -> None:
             assert same_bits(decode_keyframe(one[0].ok.payload.to_bytes()).points()[0],
                              kfs[1].points()[0])
             listener.close()
+
+
+def test_a_moved_key_frame_is_re_published_at_its_new_pose() -> None:
+    """A loop closure moved key frame 1 (TrackResult.moved_keyframes): the map
+    then holds and serves it at the new pose with the same cells; key frame
+    0 is untouched, and a move of a key frame never held is ignored."""
+    ep = endpoint()
+    with ZenohOutput(ZenohConfig(vehicle="m1", listen=(ep,))) as out:
+        kfs = [keyframe(i, shape=(20, 30)) for i in range(2)]
+        for kf in kfs:
+            out.publish_keyframe(kf)
+        wait_until(lambda: out.stats()["map_keyframes"] == 2, WAIT_S, "key frames stored")
+        R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        moved = dataclasses.replace(track_result(1.0, [0, 0, 0]),
+                                    moved_keyframes=((1, np.array([0.5, 0.0, 0.1]), R),
+                                                     (9, np.zeros(3), np.eye(3))))
+        out.publish(moved)
+        with zenoh.open(session_config(ZenohConfig(connect=(ep,)))) as session:
+            def pose_of(kf_id: int) -> MapKeyframe | None:
+                got = list(session.get(f"nislam/m1/map/keyframe/{kf_id}", timeout=10.0))
+                return decode_keyframe(got[0].ok.payload.to_bytes()) if got else None
+
+            def moved_yet() -> bool:
+                k = pose_of(1)
+                return k is not None and np.allclose(k.p_W_m, [0.5, 0.0, 0.1])
+
+            wait_until(moved_yet, WAIT_S, "key frame 1 moved")
+            k1, k0 = pose_of(1), pose_of(0)
+            assert np.allclose(k1.R_W_C, R) and np.array_equal(k1.mask, kfs[1].depth_m > 0)
+            assert np.allclose(k0.p_W_m, kfs[0].p_W_m) and np.allclose(k0.R_W_C, kfs[0].R_W_C)
+        assert out.stats()["map_keyframes"] == 2
 
 
 def start_listener(ep: str, vehicle: str, out: Path) -> JsonLinesProcess:

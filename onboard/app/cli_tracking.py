@@ -57,8 +57,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     config_arg(p)
     p.add_argument("--tracker", metavar="NAME", help="tracker (nislam, fastorb, fused)")
     p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")
-    p.add_argument("--local-ba", action="store_true",
-                   help="FastORB with its back end (local mapping and BA; off by default)")
+    ba = p.add_mutually_exclusive_group()
+    ba.add_argument("--local-ba", action="store_true", default=None,
+                    help="FastORB with its back end (local mapping and BA; [fastorb] local_ba)")
+    ba.add_argument("--no-local-ba", action="store_false", dest="local_ba",
+                    help="FastORB without its back end, to measure what it gains")
+    p.add_argument("--no-loop-closure", action="store_true",
+                   help="FastORB without loop closing ([fastorb] loop_closure = false)")
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -73,8 +78,10 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     out = {key: getattr(args, a) for a, key in flags.items() if getattr(args, a, None) is not None}
     if getattr(args, "no_attitude_calibration", False):
         out["nislam.calibrate_time_offset"] = False
-    if getattr(args, "local_ba", False):
-        out["fastorb.local_ba"] = True
+    if getattr(args, "local_ba", None) is not None:
+        out["fastorb.local_ba"] = args.local_ba
+    if getattr(args, "no_loop_closure", False):
+        out["fastorb.loop_closure"] = False
     return out
 
 
@@ -160,6 +167,8 @@ def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
                     help="zenoh mode ([zenoh] mode; client: of a fleet router, docs/fleet.md)")
     rn.add_argument("--vehicle", metavar="ID", help="zenoh vehicle id ([zenoh] vehicle)")
     rn.add_argument("--tracker", metavar="NAME", help="primary tracker (nislam, fastorb, fused)")
+    rn.add_argument("--no-loop-closure", action="store_true",
+                    help="FastORB without loop closing ([fastorb] loop_closure = false)")
     src = rn.add_mutually_exclusive_group()
     src.add_argument("--replay", type=Path, metavar="SEQ_DIR",
                      help="replay a recording at real-time pace instead of the hardware")
@@ -190,6 +199,8 @@ def _run_overrides(args: argparse.Namespace) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if args.tracker is not None:
         out["tracker.name"] = args.tracker
+    if args.no_loop_closure:
+        out["fastorb.loop_closure"] = False
     if args.mavlink is not None:
         out.update({"mavlink.connect": args.mavlink, "mavlink.enabled": True})
     if args.zenoh_connect is not None:

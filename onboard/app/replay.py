@@ -24,6 +24,7 @@ from tqdm import tqdm
 from onboard import NislamError
 from onboard.app.bench import attitude_error_model, frame_time_stats, pin_one_core
 from onboard.app.config import Config, config_to_toml
+from onboard.app.keyframe_anchors import KeyframeAnchors
 from onboard.core.evaluation import (
     RPE_LAGS_FRAMES,
     TrajectoryMetrics,
@@ -70,6 +71,7 @@ class TrackLog:
     keyframes_reused: int = 0
     clouds: dict[int, KeyframeCloud] = field(default_factory=dict)  # by id: a kept key's newest
     backend_ms: list[float] = field(default_factory=list)  # FastORB's back-end slices, timed apart
+    anchors: KeyframeAnchors | None = None  # for the final trajectory (trackers with a back end)
 
     @property
     def frames(self) -> int:
@@ -123,6 +125,11 @@ class ReplayResult:
             )
             lines.append(f"RPE ({m['rpe_delta_s']:g} s)   {_rpe_text(m)}")
             lines += lag_lines(m)
+        if m.get("loops_detected") is not None:
+            final = m.get("ate_final_rmse_m")
+            lines.append(f"loops       {m['loops_detected']} detected, {m['loops_accepted']} "
+                         f"accepted, {m['loop_corrections']} corrections; final ATE "
+                         + ("n/a" if final is None else f"{final:.4f} m (key frames' final poses)"))
         lines.append(
             f"time        median {_ms(m['frame_ms_median'])}, p95 {_ms(m['frame_ms_p95'])}, "
             f"max {_ms(m['frame_ms_max'])} per frame ({_hz(m['hz'])})"
@@ -175,8 +182,15 @@ def replay(
         seq, cfg, track_log, ev, attitude_label, map_points, plot_written=plot_note is None
     )
     metrics["sigma1_coverage"] = _coverage(track_log, seq, cfg.replay.gt_max_gap_s)
+    metrics.update(_backend_metrics(tracker, track_log, seq, cfg.replay.gt_max_gap_s))
     if hasattr(tracker, "stats"):  # the fused tracker: who contributed, who was left out
         metrics["fusion"] = tracker.stats()
+    mapping = getattr(tracker, "mapping", None)
+    if mapping is not None:  # FastORB's local mapping (docs/fastorb_backend.md)
+        st = mapping.stats
+        metrics["local_mapping"] = {"bundle_adjustments": st.jobs,
+                                    "culled_keyframes": st.culled_keyframes,
+                                    "erased_observations": st.erased_observations}
     write_text_atomic(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     written = {name: p for name, p in paths.items() if p.exists()}
     return ReplayResult(metrics, out_dir, written, plot_note)
@@ -195,6 +209,8 @@ def track_sequence(
     frames = islice(seq.frames(), max_frames)
     backend_step = getattr(tracker, "backend_step", None)
     finish_frame = getattr(tracker, "finish_frame", None)  # its work for the next frames
+    pose_of = getattr(tracker, "keyframe_pose", None)
+    out.anchors = None if pose_of is None else KeyframeAnchors(pose_of)
     # disable=None lets tqdm switch itself off when stderr is not a terminal.
     with tqdm(frames, total=total, unit="frame", desc=seq.path.name, file=sys.stderr,
               disable=None if progress else True) as bar:
@@ -214,6 +230,8 @@ def track_sequence(
                 out.q_W_C_xyzw.append(result.q_W_C_xyzw)
                 out.reference_keyframe_id.append(result.reference_keyframe_id)
                 out.var_p_m2.append(np.asarray(result.pose_var[:3], dtype=np.float64))
+                if out.anchors is not None:
+                    out.anchors.add(result)
             else:
                 out.lost_reasons[result.lost_reason or "unknown"] += 1
             out.keyframes += int(result.new_keyframe)
@@ -252,6 +270,34 @@ def evaluate_track(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> E
     ref_ids = ref_ids[valid] if len(ref_ids) == len(valid) else None
     metrics = evaluate(est, gt, rpe_delta_s=RPE_DELTA_S, reference_keyframe_id=ref_ids)
     return Evaluation(est, gt, metrics, missing, None)
+
+
+def _backend_metrics(tracker: Tracker, track_log: TrackLog, seq: Sequence,
+                     gt_max_gap_s: float) -> dict[str, Any]:
+    """Loop closing's counts, and the ATE of the final trajectory (frames on
+    their key frames' final poses, keyframe_anchors.py); None without them."""
+    stats = getattr(getattr(tracker, "loops", None), "stats", None)
+    out: dict[str, Any] = {
+        "loops_detected": None if stats is None else stats.detected,
+        "loops_accepted": None if stats is None else stats.accepted,
+        "loop_corrections": None if stats is None else stats.corrections,
+        "loop_query_ms_median": _median(None if stats is None else stats.query_ms),
+        "loop_query_ms_max": None if stats is None or not stats.query_ms else max(stats.query_ms),
+        "loop_correct_ms_median": _median(None if stats is None else stats.correct_ms),
+        "ate_final_rmse_m": None,
+    }
+    if track_log.anchors is None or seq.groundtruth is None or not track_log.t_s:
+        return out
+    est = track_log.anchors.final(track_log.trajectory())
+    gt, valid = ground_truth_at(est.t_s, seq.groundtruth, gt_max_gap_s)
+    if valid.sum() >= 2:
+        m = evaluate(est.slice_valid(valid), gt, rpe_delta_s=RPE_DELTA_S)
+        out["ate_final_rmse_m"] = m.ate_rmse_m
+    return out
+
+
+def _median(values: list[float] | None) -> float | None:
+    return None if not values else float(np.median(values))
 
 
 def _coverage(track_log: TrackLog, seq: Sequence, gt_max_gap_s: float) -> float | None:

@@ -119,6 +119,7 @@ class Service:
         self.delivery = DeliveryWatch()  # "nobody may be receiving", told once
         self._outputs: Output | None = None
         self.tracker: SwitchingTracker | None = None
+        self._backend_busy = False  # the tracker's back end had work on the last turn
         self.health = HealthMonitor(HealthThresholds(
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
             self.sc.start_grace_s, self.sc.recover_s), time.monotonic(), sources.devices)
@@ -196,15 +197,21 @@ class Service:
             # Asked before waiting: a last frame put just before the source
             # closed is still taken on this turn or the next.
             exhausted = camera.exhausted
-            got = camera.take(self._last_seq, poll)
+            got = camera.take(self._last_seq, 0.0 if self._backend_busy else poll)
             if got is None:
                 if exhausted:
                     log.info("replay finished")
                     break
-                self._idle(outputs, time.monotonic())
+                # The idle time between frames runs the tracker's back end
+                # (FastORB's local BA), one bounded slice per turn, so a new
+                # frame waits at most one slice (docs/fastorb_backend.md).
+                self._backend_busy = self.tracker.backend_step()
+                if not self._backend_busy:
+                    self._idle(outputs, time.monotonic())
                 continue
             self._last_seq, frame = got
             self._frame(outputs, frame)
+            self._backend_busy = True  # a new key frame may have queued work
 
     def _make_tracker(self, timeout_s: float) -> bool:
         """Build the tracker once the camera tells its intrinsics."""

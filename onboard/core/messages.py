@@ -119,6 +119,12 @@ class TrackResult:
     # not known). Unlike p_W_m it does not move when the tracker refines or
     # re-uses keys, so the fused tracker can tell motion from a key's correction.
     reference_offset_m: np.ndarray | None = None
+    # Loop closures that moved the map so far (FastORB): the pose jumps when
+    # this goes up, as after a reset; the MAVLink feed announces it so.
+    loop_corrections: int = 0
+    # Key frames a loop closure moved, (id, p_W_m, R_W_C) each, on the first
+    # result after it: the map's consumers re-place them (zenoh re-publishes).
+    moved_keyframes: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
     # NI-SLAM: the variance [m^2] the AHRS's attitude noise adds to each lateral
     # axis of the key's view (onboard.nislam.attitude_var; included in pose_var).
     attitude_var_m2: float = 0.0

@@ -41,7 +41,12 @@ CHI2_MONO = 5.991  # ... 2 dof
 class BaSettings:
     bf_px: float = 120.0  # virtual stereo baseline x fx [px] (FastOrbParams.rgbd_bf_px)
     max_depth_m: float = 3.0  # depth used as a stereo measurement below this
-    pixel_sigma: float = 1.0  # measurement sd [px]
+    pixel_sigma: float = 1.0  # sd of a keypoint's pixel [px]
+    disparity_sigma: float = 1.0  # sd of the virtual disparity bf / z [px]
+    # True: the second stage weighs by the sds the first one's residuals show
+    # (off: tum_fr1_rpy 0.051 m with it, 0.029 m without; docs/fastorb_backend.md)
+    estimate_sigmas: bool = False
+    min_sigma: float = 0.05  # ... but not below this [px]
     max_iterations: int = 10
     relative_tol: float = 1e-5  # stop when the error falls by less than this share
 
@@ -84,6 +89,7 @@ class LocalBundle:
         self._stereo = self._stereo_obs()
         self._kept = np.ones(len(problem.obs_kf), bool)  # observations in the graph
         self._stage = 1
+        self.pixel_sigma, self.disparity_sigma = s.pixel_sigma, s.disparity_sigma
         self._opt = self._optimizer(self._initial_values())
         self.error_before = float(self._opt.error())
         self._last_error = self.error_before
@@ -105,12 +111,16 @@ class LocalBundle:
         for i in np.flatnonzero(p.fixed):
             graph.add(gtsam.NonlinearEqualityPose3(X(int(i)), values.atPose3(X(int(i)))))
         huber = gtsam.noiseModel.mEstimator.Huber
+        # (u_L, u_R, v) with u_R = u_L - d: u_R carries the pixel's error
+        # and the disparity's, so the two u rows are correlated.
+        sp2, sd2 = self.pixel_sigma**2, self.disparity_sigma**2
         stereo_noise = gtsam.noiseModel.Robust.Create(
             huber.Create(float(np.sqrt(CHI2_STEREO))),
-            gtsam.noiseModel.Isotropic.Sigma(3, s.pixel_sigma))
+            gtsam.noiseModel.Gaussian.Covariance(
+                np.array([[sp2, sp2, 0.0], [sp2, sp2 + sd2, 0.0], [0.0, 0.0, sp2]])))
         mono_noise = gtsam.noiseModel.Robust.Create(
             huber.Create(float(np.sqrt(CHI2_MONO))),
-            gtsam.noiseModel.Isotropic.Sigma(2, s.pixel_sigma))
+            gtsam.noiseModel.Isotropic.Sigma(2, self.pixel_sigma))
         for n in np.flatnonzero(self._kept):
             u, v = float(p.obs_uv[n, 0]), float(p.obs_uv[n, 1])
             xk, lk = X(int(p.obs_kf[n])), L(int(p.obs_lm[n]))
@@ -149,8 +159,9 @@ class LocalBundle:
             return False
         if self._stage == 1:
             T, xyz = self._estimate()
+            resized = self.s.estimate_sigmas and self._estimate_sigmas(T, xyz)
             out = self._outliers(T, xyz)
-            if (out & self._kept).any():
+            if (out & self._kept).any() or resized:
                 self._kept &= ~out
                 self._stage = 2
                 self._opt = self._optimizer(self._opt.values())
@@ -179,23 +190,55 @@ class LocalBundle:
         return BaResult(T, xyz, self._outliers(T, xyz), int(self._opt.iterations()),
                         self.error_before, float(self._opt.error()))
 
+    def _estimate_sigmas(self, T: np.ndarray, xyz: np.ndarray) -> bool:
+        """The pixel and disparity sds the residuals of the kept observations
+        show (1.4826 MAD, robust to the outliers still in, times
+        sqrt(n / (n - parameters)) for what the fit absorbed). Why: ORB-SLAM2's
+        fixed 1 px (octave 0) against a disparity sd of 1 px let the depth
+        (2.4-3.6 cm sd at 4-5 m) outweigh sub-pixel tracks (0.2 px on the
+        synthetic flights), and the key frames moved with the depth noise.
+        Blurred recorded frames show larger sds and get them. False when
+        there is too little to tell."""
+        p = self.problem
+        k = self._kept
+        e_uv, e_d = self._residuals(T, xyz)
+        e_uv, e_d = e_uv[k], e_d[k & self._stereo]
+        n = e_uv.size + e_d.size
+        params = 3 * len(p.lm_ids) + 6 * int((~p.fixed).sum())
+        if e_uv.size < 20 or n <= 2 * params:
+            return False
+        c = 1.4826 * np.sqrt(n / (n - params))
+        self.pixel_sigma = max(c * float(np.median(np.abs(e_uv))), self.s.min_sigma)
+        if e_d.size >= 20:
+            self.disparity_sigma = max(c * float(np.median(np.abs(e_d))), self.s.min_sigma)
+        return True
+
+    def _residuals(self, T: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel residuals (N, 2) and disparity residuals (N,), 0 without a
+        stereo measurement or behind the camera."""
+        p = self.problem
+        Tk = T[p.obs_kf]
+        pc = np.einsum("nij,nj->ni", Tk[:, :3, :3], xyz[p.obs_lm]) + Tk[:, :3, 3]
+        zs = np.where(pc[:, 2] > 1e-6, pc[:, 2], 1.0)
+        fx, fy = self._mono_cal.fx(), self._mono_cal.fy()
+        e_uv = np.stack([fx * pc[:, 0] / zs + self._mono_cal.px() - p.obs_uv[:, 0],
+                         fy * pc[:, 1] / zs + self._mono_cal.py() - p.obs_uv[:, 1]], axis=1)
+        st = self._stereo
+        e_d = np.where(st, self.s.bf_px / zs - self.s.bf_px / np.where(st, p.obs_z, 1.0), 0.0)
+        return e_uv, e_d
+
     def _outliers(self, T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """ORB-SLAM2's gate after local BA: chi-square of an observation (in
-        units of pixel_sigma^2) over 7.815 (stereo) / 5.991 (mono), or a point
-        behind the camera."""
+        """ORB-SLAM2's gate after local BA: chi-square of an observation over
+        7.815 (stereo) / 5.991 (mono), or a point behind the camera."""
         p = self.problem
         if len(p.obs_kf) == 0:
             return np.zeros(0, bool)
         Tk = T[p.obs_kf]
-        pc = np.einsum("nij,nj->ni", Tk[:, :3, :3], xyz[p.obs_lm]) + Tk[:, :3, 3]
-        z = pc[:, 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        fx, fy = self._mono_cal.fx(), self._mono_cal.fy()
-        u = fx * pc[:, 0] / zs + self._mono_cal.px()
-        v = fy * pc[:, 1] / zs + self._mono_cal.py()
-        e2 = (u - p.obs_uv[:, 0]) ** 2 + (v - p.obs_uv[:, 1]) ** 2
-        st = self._stereo
-        disp_meas = np.where(st, self.s.bf_px / np.where(st, p.obs_z, 1.0), 0.0)
-        e2 = e2 + np.where(st, (self.s.bf_px / zs - disp_meas) ** 2, 0.0)
-        chi2 = e2 / self.s.pixel_sigma**2
-        return (z <= 1e-6) | (chi2 > np.where(st, CHI2_STEREO, CHI2_MONO))
+        z = np.einsum("nj,nj->n", Tk[:, 2, :3], xyz[p.obs_lm]) + Tk[:, 2, 3]
+        e_uv, e_d = self._residuals(T, xyz)
+        # In the configured sds (or the estimated ones if larger): an estimate
+        # from nearly exact residuals would gate the slightest pull as an outlier.
+        sp, sd = (max(self.pixel_sigma, self.s.pixel_sigma),
+                  max(self.disparity_sigma, self.s.disparity_sigma))
+        chi2 = np.sum(e_uv**2, axis=1) / sp**2 + e_d**2 / sd**2
+        return (z <= 1e-6) | (chi2 > np.where(self._stereo, CHI2_STEREO, CHI2_MONO))

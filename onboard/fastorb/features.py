@@ -145,6 +145,8 @@ def outcome_result(
     keyframe_id: int,
     reset_counter: int,
     full_quality_inliers: int,
+    loop_corrections: int = 0,
+    moved_keyframes: tuple[tuple[int, np.ndarray, np.ndarray], ...] = (),
 ) -> TrackResult:
     """The tracker's result for a frame: a pose (trusted) with `outcome`, else none."""
     if outcome is None:
@@ -175,6 +177,8 @@ def outcome_result(
         attitude_offset_s=0.0,
         matched_cells=n_in,  # PnP inliers
         finished_keyframes=finished,
+        loop_corrections=loop_corrections,
+        moved_keyframes=moved_keyframes,
     )
 
 

@@ -125,13 +125,20 @@ class LocalMapping:
         if kf_id not in index or len(kfs) < 2:
             return None
         new = kfs[index[kf_id]]
-        shared = np.array([0 if k is new else int(np.isin(k.ids, new.ids).sum()) for k in kfs])
+        shared = np.array([0 if k is new else int(np.isin(np.unique(k.ids), new.ids).sum())
+                           for k in kfs])
         order = [i for i in np.argsort(-shared, kind="stable")
                  if shared[i] >= self.s.min_shared][: self.s.local_keyframes - 1]
         local = [index[kf_id]] + order
         lm_ids = np.unique(np.concatenate([kfs[i].ids for i in local]))
         # observations of those landmarks in every key frame
-        seen = [np.flatnonzero(np.isin(k.ids, lm_ids)) for k in kfs]
+        # One observation per landmark and key frame: a key frame keeps a row
+        # per keypoint on a landmark, and keypoints of several pyramid levels
+        # sit on one corner (1.6 rows per landmark on figure8). They stay for
+        # descriptor matching across scales (re-localisation needs them:
+        # circle lost its track without them); the BA counted each as another
+        # observation.
+        seen = [_first_rows(k.ids, lm_ids) for k in kfs]
         anchors = [i for i in np.argsort([-len(r) for r in seen], kind="stable")
                    if i not in local and len(seen[i]) > 0][: self.s.fixed_keyframes]
         if not anchors:  # the gauge: hold the oldest of the window
@@ -191,6 +198,28 @@ class LocalMapping:
         newest = int(np.argmax(np.where(p.fixed, -1, p.kf_ids)))
         delta = inverse(res.T_cw[newest]) @ p.T_cw[newest]
         last_id = int(p.kf_ids.max())
+        # A landmark of a moved key frame that was not in the BA (seen by it
+        # alone, as every landmark is that a key frame makes from its depth,
+        # or left out by max_points) moves rigidly with that key frame, the
+        # newest observer: where the BA would have put it. Left in place, its
+        # copies disagreed with the key frame's new pose and with the tracked
+        # points, which follow it (`corrected`).
+        done = np.concatenate([ids, dropped])
+        extra_ids, extra_xyz = [], []
+        for i in sorted(np.flatnonzero(~p.fixed), key=lambda i: -p.kf_ids[i]):
+            kf = kfs.get(int(p.kf_ids[i]))
+            if kf is None:
+                continue
+            sel = _first_rows(kf.ids, kf.ids)
+            sel = sel[~np.isin(kf.ids[sel], done)]
+            d = inverse(res.T_cw[i]) @ p.T_cw[i]
+            extra_ids.append(kf.ids[sel])
+            extra_xyz.append(kf.xyz_W[sel] @ d[:3, :3].T + d[:3, 3])
+            done = np.concatenate([done, kf.ids[sel]])
+        ids = np.concatenate([ids, *extra_ids])
+        xyz = np.concatenate([xyz, *extra_xyz])
+        order = np.argsort(ids, kind="stable")
+        ids, xyz = ids[order], xyz[order]
         for kf in kfs.values():
             rows = erase.get(kf.keyframe_id)
             if rows:
@@ -218,7 +247,7 @@ class LocalMapping:
         kfs = self._map.keyframes()
         if len(kfs) < 3:
             return []
-        all_ids = np.concatenate([k.ids for k in kfs])
+        all_ids = np.concatenate([np.unique(k.ids) for k in kfs])  # observers, once each
         uniq, counts = np.unique(all_ids, return_counts=True)
         newest = kfs[-1].keyframe_id
         first = min(k.keyframe_id for k in kfs)
@@ -226,10 +255,11 @@ class LocalMapping:
         for k in kfs:
             if k.keyframe_id not in candidates or k.keyframe_id in (newest, first) or not len(k.ids):
                 continue
-            others = counts[np.searchsorted(uniq, k.ids)] - 1
+            own = np.unique(k.ids)
+            others = counts[np.searchsorted(uniq, own)] - 1
             if np.mean(others >= self.s.observers) >= self.s.redundancy:
                 culled.append(k.keyframe_id)
-                counts[np.searchsorted(uniq, k.ids)] -= 1
+                counts[np.searchsorted(uniq, own)] -= 1
         for kf_id in culled:
             self._map.remove(kf_id)
         return culled
@@ -249,6 +279,13 @@ def corrected(trk: Tracked, c: Correction) -> Tracked:
         hit = c.point_ids[pos] == trk.ids
         xyz[hit] = c.point_xyz[pos[hit]]
     return Tracked(trk.uv, xyz, trk.ids)
+
+
+def _first_rows(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Rows of `ids` holding one of `wanted`, the first row of each id only."""
+    _, first = np.unique(ids, return_index=True)
+    first.sort()
+    return first[np.isin(ids[first], wanted)]
 
 
 def _depths(kf: Keyframe) -> np.ndarray:

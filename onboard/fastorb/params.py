@@ -78,10 +78,13 @@ class FastOrbParams:
     init_from_attitude: bool = True  # orient a new map by the attitude source, if it has one
     map_cloud_stride: int = 4  # key-frame clouds from every n-th pixel; 0: none
     # Local mapping (mapping.py, bundle.py): local BA per key frame, in slices after frames
-    # Off by default: `nislam run` runs no back end (its slices are longer than
-    # the idle time between frames), so replays score what flies; and on the
-    # synthetic flights it costs accuracy (docs/fastorb_backend.md).
-    local_ba: bool = False  # true: local mapping and BA after each frame (`--local-ba`)
+    # Off by default: on the synthetic flights it costs accuracy (docs/fastorb_backend.md).
+    # Replay, bench and `nislam run` (its idle time) all run it when on.
+    local_ba: bool = False  # true: local mapping and BA between frames (`--local-ba`)
     local_ba_keyframes: int = 6  # the new key frame and its most covisible ones, optimised
     local_ba_fixed_keyframes: int = 4  # other key frames seeing their landmarks, held fixed
     local_ba_depth_sd: float = 0.0015  # depth sd per m^2 of depth (Kinect-like; the sim's) [1/m]
+    local_ba_max_points: int = 1000  # landmarks in one BA at most: an LM slice's cost grows with them
+    local_ba_pixel_sd: float = 1.0  # sd of a key frame's landmark pixel in the BA [px]
+    # Loop closing (loop.py, place.py): per key frame in the back-end slices
+    loop_closure: bool = True  # false: no loop detection or correction (`--no-loop-closure`)

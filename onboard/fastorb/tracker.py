@@ -1,7 +1,8 @@
 """FastORB tracker: descriptor-free keypoint tracking on RGB-D frames (Fu, Yu,
 Wang, Yang, He, Zhang, Mian, "Fast ORB-SLAM without Keypoint Descriptors",
-IEEE TIP 2022): the tracking front end, and local mapping with local BA
-(mapping.py, bundle.py) run in slices by `backend_step()` between frames.
+IEEE TIP 2022): the tracking front end; local mapping with local BA
+(mapping.py, bundle.py) and loop closing (loop.py, place.py) run in slices
+by `backend_step()` between frames.
 
 A pure core: arrays in, a `TrackResult` out; no threads, no I/O. It needs no
 attitude sensor: `track()` takes the attitude source for the shared `Tracker`
@@ -23,11 +24,9 @@ Per frame (Sec. III "Tracking", Sec. IV; parts in fastorb_*.py):
      redetect_min_inliers new keypoints by ORB detection alone,
   8. no pose: lost; later frames re-localise against key frames by descriptors.
 
-Poses are kept as T_cw (world -> camera, as OpenCV and the paper). World frame:
-the first camera at the origin, oriented by the attitude source at the first
-frame when it has one (a gravity-aligned world, as NI-SLAM's), else the first
-camera's axes. Landmarks keep the world position they got from depth when
-they were made; a landmark found again keeps its id and position.
+Poses are T_cw (world -> camera, as OpenCV and the paper). World: the first
+camera at the origin, oriented by the attitude source at the first frame if
+it has one, else the first camera's axes. A landmark found again keeps its id.
 """
 
 from __future__ import annotations
@@ -46,6 +45,7 @@ from onboard.fastorb import kernels as fastorb_kernels
 from onboard.fastorb.features import Detector, Features, Outcome, Tracked, outcome_result
 from onboard.fastorb.bundle import BaSettings
 from onboard.fastorb.local_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
+from onboard.fastorb.loop import LoopClosing, LoopSettings, PlaceSettings
 from onboard.fastorb.mapping import LocalMapping, MappingSettings, corrected
 from onboard.fastorb.matching import (
     LkSettings,
@@ -84,9 +84,14 @@ class FastOrbTracker:
                                 min_gate_px=p.pnp_min_gate_px, bf_px=p.rgbd_bf_px)
         self._map = LocalMap(p.max_keyframes, p.local_map_keyframes)
         self.mapping = LocalMapping(
-            self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m),
-            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes),
+            self._map, self.K, BaSettings(1.0 / p.local_ba_depth_sd, p.max_depth_m,
+                                pixel_sigma=p.local_ba_pixel_sd),
+            MappingSettings(p.local_ba_keyframes, p.local_ba_fixed_keyframes,
+                            max_points=p.local_ba_max_points),
         ) if p.local_ba else None
+        self.loops = LoopClosing(self._map, self.K, LoopSettings(place=PlaceSettings(
+            depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure, pnp=self._pnp)
+        self.keyframe_pose = self.loops.pose_of  # a key frame's T_cw now (final trajectory)
         self._state = TrackState.INITIALIZING
         self._tracked = Tracked.empty()
         self._prev_gray: np.ndarray | None = None
@@ -123,11 +128,15 @@ class FastOrbTracker:
 
     def backend_step(self) -> bool:
         """One unit of the back end's work (local mapping: build a BA, one
-        LM iteration, or apply it), for the idle time after a frame; False
-        when there was nothing to do. Never needed for tracking itself."""
-        if self.mapping is None or self.mapping.idle:
+        LM iteration, or apply it; else loop closing: one key frame's query
+        and correction), for the idle time after a frame; False when there
+        was nothing to do. Never needed for tracking itself."""
+        if self.mapping is not None and not self.mapping.idle:
+            correction = self.mapping.step()
+        elif not self.loops.idle:
+            correction = self.loops.step()
+        else:
             return False
-        correction = self.mapping.step()
         if correction is not None:  # the tracked points and recent poses follow
             self._tracked = corrected(self._tracked, correction)
             back = inverse(correction.delta_W)
@@ -179,13 +188,8 @@ class FastOrbTracker:
     def _firm(self, outcome: Outcome) -> bool:
         """Whether the pose is firm enough to place new landmarks with: the
         error it puts into a landmark at its inliers' depth (pose.landmark_sd)
-        at most landmark_max_sd_m. A blurred frame's pose is fine to report
-        but would carry its error into every landmark made from it. Not the
-        camera position's sd: with far points (no disparity residual) a
-        sideways shift and a turn look alike, the position is loose (yaw-spin
-        at 80 deg/s, walls at 4.5 m: 2.5-14 mm) while the landmarks sit where
-        pixels and depths say (0.7-2 mm); that gate stopped every key frame
-        in fast turns until the tracks ran out of the view."""
+        at most landmark_max_sd_m; not the camera position's sd, which is
+        loose in fast turns with far points (docs/fastorb_backend.md)."""
         sd = landmark_sd(outcome.T_cw, outcome.pnp.cov, outcome.tracked.xyz_W)
         return bool(np.isfinite(sd) and sd <= self.p.landmark_max_sd_m)
 
@@ -382,6 +386,7 @@ class FastOrbTracker:
         self._map.add(kf)
         if self.mapping is not None:
             self.mapping.on_keyframe(kf)
+        self.loops.on_keyframe(kf)
         self._unfinished = kf
         self._frames_since_keyframe = 0
         # The 65 % rule's reference is what the key frame hands on to tracking
@@ -422,6 +427,7 @@ class FastOrbTracker:
         self._map.clear()
         if self.mapping is not None:
             self.mapping.reset()
+        self.loops.reset()
         pnp = PnpResult(T_cw, np.ones(len(first), bool), 0.0, np.diag([1e-8] * 6))
         outcome = Outcome(T_cw, first, pnp, feats)
         finished = self._make_keyframe(frame, gray, outcome)
@@ -470,14 +476,9 @@ class FastOrbTracker:
         return self._unposed(frame.t_s, TrackState.LOST, "re-localisation failed")
 
     # ---------------------------------------------------------------- results
-    def _tracked_result(
-        self,
-        t_s: float,
-        outcome: Outcome,
-        new_key: bool,
-        finished: tuple[KeyframeCloud, ...],
-        history_reset: bool = False,
-    ) -> TrackResult:
+    def _tracked_result(self, t_s: float, outcome: Outcome, new_key: bool,
+                        finished: tuple[KeyframeCloud, ...], history_reset: bool = False,
+                        ) -> TrackResult:
         self._tracked = outcome.tracked
         self._last_T_cw = outcome.T_cw
         if history_reset:
@@ -495,4 +496,5 @@ class FastOrbTracker:
         kf = self._map.newest
         return outcome_result(t_s, state, outcome, reason, new_key, finished,
                               -1 if kf is None else kf.keyframe_id, self._reset_counter,
-                              self.p.redetect_min_inliers)
+                              self.p.redetect_min_inliers,
+                              *self.loops.result_fields())

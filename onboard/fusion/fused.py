@@ -161,6 +161,15 @@ class FusedTracker:
         self.frames += 1
         return out
 
+    def backend_step(self) -> bool:
+        """One unit of a part's back-end work (FastORB's local mapping), for
+        the loop's idle time; False when no part has any."""
+        for link in self.links:
+            step = getattr(link.tracker, "backend_step", None)
+            if step is not None and step():
+                return True
+        return False
+
     def finish_frame(self) -> None:
         """Each tracker's work for the next frames, after the pose went out."""
         for link in self.links:

@@ -70,6 +70,8 @@ class SwitchingTracker:
         self._attitude_since_s: float | None = None
         self.reset_counter = 0
         self._own_resets: int | None = None  # the active tracker's counter when last seen
+        self.loop_corrections = 0  # ours: the active tracker's loop corrections, summed
+        self._own_loops: int | None = None
 
     @property
     def active_name(self) -> str:
@@ -90,6 +92,12 @@ class SwitchingTracker:
             self._switch(to_fallback=True, t_s=frame.t_s)
         assert self.fallback is not None
         return self._into_world(self.fallback.track(frame, attitude))
+
+    def backend_step(self) -> bool:
+        """One unit of the active tracker's back-end work (FastORB's local
+        mapping), for the loop's idle time; False when it has none."""
+        step = getattr(self.fallback or self.primary, "backend_step", None)
+        return bool(step()) if step is not None else False
 
     def finish_frame(self) -> None:
         """The trackers' work for the next frames, after the pose went out."""
@@ -119,6 +127,7 @@ class SwitchingTracker:
         self.switches += 1
         self.reset_counter += 1
         self._own_resets = None  # the next result sets the new tracker's baseline
+        self._own_loops = None
         self._frame = _Frame.identity()
         # Before any trusted pose there is nothing to tie to: keep the tracker's world.
         self._tie_rotation = to_fallback if self._last is not None else None
@@ -132,6 +141,11 @@ class SwitchingTracker:
         if self._own_resets is not None:
             self.reset_counter += max(0, result.reset_counter - self._own_resets)
         self._own_resets = result.reset_counter
+        # Loop corrections likewise: a switch must not read as one (the MAVLink
+        # feed announces a change of this counter as a reset).
+        if self._own_loops is not None:
+            self.loop_corrections += max(0, result.loop_corrections - self._own_loops)
+        self._own_loops = result.loop_corrections
         if result.trusted and result.p_W_m is not None and result.R_W_C is not None:
             if self._tie_rotation is not None and self._last is not None:
                 self._frame = _tie(self._last, result.p_W_m, result.R_W_C, self._tie_rotation)
@@ -142,7 +156,9 @@ class SwitchingTracker:
             var[:3] = (self._frame.R**2) @ var[:3]
             result = dataclasses.replace(result, p_W_m=p_W, R_W_C=R_W, pose_var=var)
         clouds = tuple(self._cloud_into_world(c) for c in result.finished_keyframes)
-        return dataclasses.replace(result, reset_counter=self.reset_counter, finished_keyframes=clouds)
+        moved = tuple((k, *self._frame.pose(p, R)) for k, p, R in result.moved_keyframes)
+        return dataclasses.replace(result, reset_counter=self.reset_counter, finished_keyframes=clouds,
+                                   loop_corrections=self.loop_corrections, moved_keyframes=moved)
 
     def _cloud_into_world(self, cloud: KeyframeCloud) -> KeyframeCloud:
         p, R = self._frame.pose(cloud.p_W_m, cloud.R_W_C)

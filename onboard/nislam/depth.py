@@ -40,18 +40,19 @@ def depth_translation(
     sums of onboard.nislam.kernels.depth_difference_sums (every other row and
     column: a quarter of the cells fixes three parameters just as well).
 
-    `frac`: the peak's sub-cell part beyond (du, dv). With
-    `depth_sigma_floor_m` > 0 the fit is weighted by the inverse variance of
-    each difference and the differences are carried to the sub-cell shift
-    (kernels.depth_difference_sums): the paper's plain mean lets slanted
-    surfaces and depth edges, whose differences move with the rounding of the
-    shift, set t_z.
+    `frac`: the peak's sub-cell part beyond (du, dv). With `depth_subcell`
+    (default) each difference is carried to the sub-cell shift along the
+    key's depth slope (kernels.depth_difference_sums): at the whole-cell
+    shift, a surface seen at a grazing angle (5 cm of depth per cell) moves
+    t_z by the rounding times its slope, centimetres from one frame to the
+    next. With `depth_sigma_floor_m` > 0 the fit is also weighted by the
+    inverse variance of each difference.
     """
     s = key.img.res_m
     sums = kern.depth_difference_sums(
         key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
         p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
-        p.depth_sigma_rel, p.depth_sigma_floor_m,
+        p.depth_sigma_rel, p.depth_sigma_floor_m, p.depth_subcell, p.depth_cell_step,
     )
     if float(sums[kern.N]) < p.min_matched_cells:
         return None

@@ -42,7 +42,12 @@ class NislamParams:
     # noise sigma_rel z^2, at least the floor, plus the slope times the cell
     # sampling) and carried to the sub-cell peak; floor 0 = the paper's mean.
     depth_sigma_rel: float = 0.0015  # 1/m: stereo / structured-light class (1.5 mm at 1 m)
-    depth_sigma_floor_m: float = 0.0  # floor; 0 = off (the paper's mean: with sensor depth noise the weighted fit was worse, docs/nislam-error-budget.md)
+    # Each depth difference carried to the sub-cell peak along the key's depth
+    # slope: at the whole-cell shift the rounding times the slope moved t_z by
+    # up to 1 cm a frame on grazing surfaces (docs/nislam-error-budget.md)
+    depth_subcell: bool = True
+    depth_cell_step: int = 2  # Eq. 18 over every n-th row and column (1: 10-15 % less axial noise, +1.7 ms)
+    depth_sigma_floor_m: float = 0.001  # floor (depth quantisation, ~1 mm); 0 = unweighted (docs/nislam-error-budget.md)
     depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
     # Colour rows exposed one after another over this time (top first); 0 = a
     # global shutter. Each row is rotated to the middle row's instant

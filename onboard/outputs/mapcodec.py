@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -106,6 +106,21 @@ class MapKeyframe:
         pts = np.stack([(uu - w // 2 + 0.5) * s, (vv - h // 2 + 0.5) * s, self.depth_m], axis=1)
         xyz = (pts @ self.R_W_C.T + self.p_W_m).astype(np.float32)
         return xyz, self.rgb
+
+
+@dataclass(frozen=True)
+class KeyframeMove:
+    """A key frame the tracker moved (a loop closure): the same cells (they
+    are in key axes) at a new pose."""
+
+    keyframe_id: int
+    p_W_m: np.ndarray
+    R_W_C: np.ndarray
+
+    def applied(self, data: bytes) -> MapKeyframe:
+        """The encoded key frame `data` at this pose."""
+        return replace(decode_keyframe(data), p_W_m=np.asarray(self.p_W_m, np.float64),
+                       R_W_C=np.asarray(self.R_W_C, np.float64))
 
 
 def encode_keyframe(kf: KeyframeCloud | MapKeyframe) -> bytes:

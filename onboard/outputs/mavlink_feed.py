@@ -39,8 +39,11 @@ reset_counter (uint8, wraps) starts at `start_counter` (one above the last
 one an earlier process sent: onboard.outputs.mavlink_origin), so the first
 pose of a new process, whose world starts at that pose, announces a new
 origin; it goes up by exactly one at the first pose after the tracker's own
-reset_counter changed, after a lost spell, or when the position steps
-further than `jump_m` faster than `jump_speed_m_s`. No pose is ever sent for
+reset_counter changed, after a loop closure moved the tracker's map
+(`TrackResult.loop_corrections` changed: the pose steps by the drift it
+removed, which the autopilot must not fuse as motion; docs/autopilot.md),
+after a lost spell, or when the position steps further than `jump_m`
+faster than `jump_speed_m_s`. No pose is ever sent for
 a frame the tracker does not trust.
 
 State (HEARTBEAT system_status, quality):
@@ -228,6 +231,7 @@ class VisionFeed:
         self.host_time_s = host_time_s  # frame stamp -> host monotonic time (None: the same)
         self.resets = 0
         self._tracker_counter: int | None = None
+        self._loop_counter: int | None = None
         self._pending_reset: str | None = None  # why the next pose bumps the counter
         self._history: deque[_Pose] = deque()
         self._had_pose = False
@@ -255,6 +259,9 @@ class VisionFeed:
         if self._tracker_counter is not None and result.reset_counter != self._tracker_counter:
             self._pending_reset = self._pending_reset or "tracker reset"
         self._tracker_counter = result.reset_counter
+        if self._loop_counter is not None and result.loop_corrections != self._loop_counter:
+            self._pending_reset = self._pending_reset or "loop closure"
+        self._loop_counter = result.loop_corrections
         if not result.trusted or result.p_W_m is None or result.R_W_C is None:
             return self._untrusted(result)
         return self._trusted(result)

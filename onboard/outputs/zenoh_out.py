@@ -32,8 +32,8 @@ Key expressions, all under `nislam/<vehicle>/` (`[zenoh] vehicle`):
                         onboard/outputs/mapcodec.py (encoding
                         "application/octet-stream;nislam-keyframe/1").
                         A key the tracker re-uses is published again when
-                        it is left (refined, possibly moved): the newest
-                        under an id replaces the older one.
+                        it is left, one a loop closure moved at once at its
+                        new pose: the newest under an id replaces the older.
     map/**              a queryable: a `get` on it (or on any key below it)
                         is answered with every key frame held, each as one
                         reply under its own map/keyframe/<id> key. Late
@@ -81,7 +81,7 @@ from scipy.spatial.transform import Rotation
 
 from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, TrackState
 from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
-from onboard.outputs.mapcodec import MapKeyframe, encode_keyframe, map_digest
+from onboard.outputs.mapcodec import KeyframeMove, MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
 from onboard.outputs.wake import Wake
 from onboard.outputs.zenoh_link import ZenohLink
@@ -258,7 +258,8 @@ class ZenohOutput:
         self._next_status = clock()
         self._pose_worker: Worker[TrackResult] = Worker(
             "zenoh-pose", self._put_pose, cfg.queue_frames, tick=self._tick)
-        self._map_worker: Worker[KeyframeCloud] = Worker("zenoh-map", self._put_keyframe, 256)
+        self._map_worker: Worker[KeyframeCloud | KeyframeMove] = Worker(
+            "zenoh-map", self._put_keyframe, 256)
         self._closed = False
         # Set by the service (onboard.app.latency.attach_timing): the loop's
         # latency, TIMESYNC and delay advice in the status; encode-and-put times.
@@ -270,6 +271,8 @@ class ZenohOutput:
         self._pose_worker.put(result)
         for cloud in result.finished_keyframes:
             self._map_worker.put(cloud)
+        for kf_id, p_W, R_W_C in result.moved_keyframes:  # a loop closure moved them
+            self._map_worker.put(KeyframeMove(kf_id, p_W, R_W_C))
 
     def publish_keyframe(self, cloud: KeyframeCloud) -> None:
         self._map_worker.put(cloud)
@@ -428,9 +431,14 @@ class ZenohOutput:
         self._period_start = now
         return out
 
-    def _put_keyframe(self, cloud: KeyframeCloud) -> None:
+    def _put_keyframe(self, item: KeyframeCloud | KeyframeMove) -> None:
         t0 = time.perf_counter()
-        kf = MapKeyframe.from_cloud(cloud)
+        if isinstance(item, KeyframeMove):
+            kf = self._moved(item)
+            if kf is None:
+                return
+        else:
+            kf = MapKeyframe.from_cloud(item)
         data = encode_keyframe(kf)
         if self.on_stage is not None:
             self.on_stage("zenoh_map_encode", (time.perf_counter() - t0) * 1e3)
@@ -447,6 +455,12 @@ class ZenohOutput:
             priority=priority(self.cfg.map_priority), attachment=self.boot,
         )
         self._bytes["map"] += len(data)
+
+    def _moved(self, m: KeyframeMove) -> MapKeyframe | None:
+        """A held key frame at its new pose; None if never held or evicted."""
+        with self._map_lock:
+            held = self._map.get(m.keyframe_id)
+        return None if held is None else m.applied(held[0])
 
     def _store(self, keyframe_id: int, data: bytes, points: int) -> None:
         limit = self.cfg.map_max_mb * 1e6
