@@ -90,11 +90,7 @@ def score(results: list, gt) -> dict[str, float | None]:
     for r in results:
         log.frame_ms.append(0.0)
         if r.trusted:
-            log.t_s.append(r.t_s)
-            log.p_W_m.append(r.p_W_m)
-            log.q_W_C_xyzw.append(r.q_W_C_xyzw)
-            log.reference_keyframe_id.append(r.reference_keyframe_id)
-            log.var_p_m2.append(np.asarray(r.pose_var[:3], dtype=np.float64))
+            log.add_pose(r)
     ev = evaluate_track(log, _Seq(gt), 0.1)  # type: ignore[arg-type]
     m = ev.metrics.as_dict() if ev.metrics is not None else {}
     est = log.trajectory()

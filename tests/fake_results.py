@@ -7,7 +7,8 @@ import dataclasses
 
 import numpy as np
 
-from onboard.core.messages import KeyframeCloud, TrackResult, TrackState
+from onboard.core.camera import CameraModel
+from onboard.core.messages import KeyframeCloud, RgbdFrame, TrackResult, TrackState
 
 POSE_VAR = np.array([1e-4, 2e-4, 3e-4, 4e-6, 5e-6, 6e-6])
 
@@ -111,3 +112,27 @@ class NullRunner:
 
     def stop(self, timeout_s: float = 5.0) -> bool:
         return True
+
+
+class FakeCamera:
+    """A CameraSource of `n` blank 64x48 frames at 30 Hz from t = 100 s,
+    handed out one per take(), then exhausted."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.next = 0
+        self.model = CameraModel(100.0, 100.0, 32.0, 24.0, 64, 48, 1000.0)
+
+    def wait_camera(self, timeout_s: float) -> CameraModel:
+        return self.model
+
+    def take(self, after_seq: int = 0, timeout_s: float = 0.0):
+        if self.next >= self.n:
+            return None
+        self.next += 1
+        t = 100.0 + self.next / 30.0
+        return self.next, RgbdFrame(t, np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32))
+
+    @property
+    def exhausted(self) -> bool:
+        return self.next >= self.n

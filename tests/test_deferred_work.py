@@ -11,7 +11,7 @@ import threading
 
 import numpy as np
 import pytest
-from fake_results import NullRunner, ScriptedTracker
+from fake_results import FakeCamera, NullRunner, ScriptedTracker
 from test_nislam import INTR, Scene, _errors_mm, _pan_out_and_back, _params, _track_poses
 
 from onboard.app import service as service_mod
@@ -19,7 +19,6 @@ from onboard.app.config import load_config
 from onboard.app.service import Service
 from onboard.app.sources import Sources
 from onboard.core.attitude import AttitudeBuffer
-from onboard.core.camera import CameraModel
 from onboard.core.messages import RgbdFrame, TrackResult
 from onboard.nislam import correlation, deferred
 from onboard.nislam.tracker import NislamTracker
@@ -98,26 +97,6 @@ def test_a_new_key_is_made_after_the_pose_not_before(scene, monkeypatch):
 
 
 # ------------------------------------------------------------------ the service
-class _Camera:
-    def __init__(self, n: int) -> None:
-        self.n, self.next = n, 0
-        self.model = CameraModel(100.0, 100.0, 32.0, 24.0, 64, 48, 1000.0)
-
-    def wait_camera(self, timeout_s: float) -> CameraModel:
-        return self.model
-
-    def take(self, after_seq: int = 0, timeout_s: float = 0.0):
-        if self.next >= self.n:
-            return None
-        self.next += 1
-        t = 100.0 + self.next / 30.0
-        return self.next, RgbdFrame(t, np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32))
-
-    @property
-    def exhausted(self) -> bool:
-        return self.next >= self.n
-
-
 class _Tracker(ScriptedTracker):
     """Steady trusted poses; records its calls."""
 
@@ -168,7 +147,7 @@ def test_the_service_hands_the_pose_over_before_the_deferred_work(monkeypatch):
     events: list[str] = []
     monkeypatch.setattr(service_mod, "make_outputs", lambda *a, **k: _Output(events))
     cfg = load_config(None, {"service.stats_period_s": 3600.0})
-    sources = Sources("fake", _Camera(6), AttitudeBuffer(np.eye(3), 16, 0.1), NullRunner())
+    sources = Sources("fake", FakeCamera(6), AttitudeBuffer(np.eye(3), 16, 0.1), NullRunner())
     svc = Service(cfg, sources, threading.Event(), tracker_factory=lambda *_: _Tracker(events))
     svc.run()
     frames = "".join(e[0] for e in events)

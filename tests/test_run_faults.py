@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fake_results import NullRunner, ScriptedTracker
+from fake_results import FakeCamera, NullRunner, ScriptedTracker
 
 from onboard import NislamError
 from onboard.app import run_files
@@ -23,34 +23,9 @@ from onboard.app.config import load_config
 from onboard.app.service import Service
 from onboard.app.sources import Sources
 from onboard.core.attitude import AttitudeBuffer
-from onboard.core.camera import CameraModel
-from onboard.core.messages import RgbdFrame
 from onboard.core.trajectory import parse_tum_lines
 
 HZ = 30.0
-
-
-class FakeCamera:
-    """`n` frames, handed out one per take(), then exhausted."""
-
-    def __init__(self, n: int) -> None:
-        self.n = n
-        self.next = 0
-        self.model = CameraModel(100.0, 100.0, 32.0, 24.0, 64, 48, 1000.0)
-
-    def wait_camera(self, timeout_s: float) -> CameraModel:
-        return self.model
-
-    def take(self, after_seq: int = 0, timeout_s: float = 0.0):
-        if self.next >= self.n:
-            return None
-        self.next += 1
-        t = 100.0 + self.next / HZ
-        return self.next, RgbdFrame(t, np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32))
-
-    @property
-    def exhausted(self) -> bool:
-        return self.next >= self.n
 
 
 def run_service(out: Path, frames: int, tracker: ScriptedTracker):

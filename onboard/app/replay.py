@@ -31,7 +31,7 @@ from onboard.core.evaluation import (
     evaluate,
     ground_truth_at,
 )
-from onboard.core.messages import AttitudeSource, KeyframeCloud, Tracker
+from onboard.core.messages import AttitudeSource, KeyframeCloud, Tracker, TrackResult
 from onboard.core.trajectory import Trajectory, write_tum
 from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.registry import make_tracker
@@ -76,6 +76,14 @@ class TrackLog:
     @property
     def frames(self) -> int:
         return len(self.frame_ms)
+
+    def add_pose(self, result: TrackResult) -> None:
+        """Keep a trusted result's pose, key and reported variances."""
+        self.t_s.append(result.t_s)
+        self.p_W_m.append(result.p_W_m)
+        self.q_W_C_xyzw.append(result.q_W_C_xyzw)
+        self.reference_keyframe_id.append(result.reference_keyframe_id)
+        self.var_p_m2.append(np.asarray(result.pose_var[:3], dtype=np.float64))
 
     def trajectory(self) -> Trajectory:
         n = len(self.t_s)
@@ -225,11 +233,7 @@ def track_sequence(
                 if backend_step():
                     out.backend_ms.append((time.perf_counter() - t0) * 1e3)
             if result.trusted:
-                out.t_s.append(result.t_s)
-                out.p_W_m.append(result.p_W_m)
-                out.q_W_C_xyzw.append(result.q_W_C_xyzw)
-                out.reference_keyframe_id.append(result.reference_keyframe_id)
-                out.var_p_m2.append(np.asarray(result.pose_var[:3], dtype=np.float64))
+                out.add_pose(result)
                 if out.anchors is not None:
                     out.anchors.add(result)
             else:
