@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import socket
 import subprocess
@@ -101,3 +102,45 @@ class JsonLinesProcess:
 
 def python_script(path: Path, *args: str) -> list[str]:
     return [sys.executable, str(path), *args]
+
+
+class LinePeer:
+    """A peer in another process that speaks plain text lines: commands on
+    its stdin, one line per event on its stdout (read on a thread)."""
+
+    def __init__(self, argv: list[str], wait_s: float) -> None:
+        self.wait_s = wait_s
+        self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     text=True, bufsize=1)
+        self.lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.put(line.strip())
+
+    def expect(self, prefix: str) -> str:
+        """The next line starting with `prefix` (earlier lines are skipped)."""
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            try:
+                line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(f"peer never said {prefix!r}") from None
+            if line.startswith(prefix):
+                return line
+
+    def send(self, text: str, reply: str) -> str:
+        self.proc.stdin.write(text + "\n")
+        self.proc.stdin.flush()
+        return self.expect(reply)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.write("quit\n")
+                self.proc.stdin.flush()
+                self.proc.wait(10)
+            except (BrokenPipeError, subprocess.TimeoutExpired):
+                self.proc.kill()
+                self.proc.wait(10)

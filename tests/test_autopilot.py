@@ -5,9 +5,7 @@ autopilot peer in another process on 127.0.0.1 (tests/peers/mavlink_autopilot.py
 from __future__ import annotations
 
 import math
-import queue
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -16,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from subproc import LinePeer
 
 from drivers.autopilot_attitude import AutopilotAttitude, BootClock
 from drivers.fc_link import FcLink
@@ -195,39 +194,14 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-class Peer:
+class Peer(LinePeer):
+    """tests/peers: an autopilot on UDP whose boot clock started `boot_age_s` ago."""
+
     def __init__(self, port: int, boot_age_s: float) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, str(PEER), "--port", str(port), "--boot-age-s", str(boot_age_s)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
-        self.lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
+        super().__init__([sys.executable, str(PEER), "--port", str(port),
+                          "--boot-age-s", str(boot_age_s)], WAIT_S)
         ready = self.expect("ready")
         self.boot_origin_ns = int(ready.split("=")[1])
-
-    def _read(self) -> None:
-        for line in self.proc.stdout:
-            self.lines.put(line.strip())
-
-    def expect(self, prefix: str) -> str:
-        deadline = time.monotonic() + WAIT_S
-        while True:
-            try:
-                line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                raise AssertionError(f"peer never said {prefix!r}") from None
-            if line.startswith(prefix):
-                return line
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            try:
-                self.proc.stdin.write("quit\n")
-                self.proc.stdin.flush()
-                self.proc.wait(10)
-            except (BrokenPipeError, subprocess.TimeoutExpired):
-                self.proc.kill()
-                self.proc.wait(10)
 
 
 class Heard:

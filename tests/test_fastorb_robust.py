@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from test_fastorb import DT, INTR, NoAttitude, Plane, Room, _relative_errors, _texture
-from test_fastorb import flight
-
+from test_fastorb import DT, INTR, NoAttitude, Plane, Room, _relative_errors, _texture, flight
 
 from onboard.core.messages import RgbdFrame, TrackState
 from onboard.core.se3 import inverse, make_pose
