@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import logging
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +56,19 @@ def test_a_jump_the_motion_model_cannot_explain_is_not_written_as_trusted(tmp_pa
     est = poses_in(tmp_path / "out" / "trajectory.tum")
     t_jump = 100.0 + 40 / HZ
     assert not np.any((est[:, 0] >= t_jump - 1e-6) & (est[:, 0] < t_jump + 2 / HZ - 1e-6))
+
+
+def test_the_wait_for_the_first_frame_starts_after_the_kernels_compiled(tmp_path, monkeypatch):
+    """A cold numba cache takes ~15 s on a fresh clone: not a camera that
+    sends nothing. The health's first-frame wait counts from the loop's start."""
+    from onboard.app import service as service_mod
+
+    compiled_at: list[float] = []
+    monkeypatch.setattr(service_mod.kernels, "warm_up",
+                        lambda: compiled_at.append(time.monotonic()))
+    svc, result = run_service(tmp_path / "out", 30, ScriptedTracker())
+    assert len(compiled_at) == 1 and svc.health.start_s >= compiled_at[0]
+    assert result.metrics["frames_tracked"] == 30
 
 
 class FillingDisk:

@@ -164,6 +164,11 @@ class Service:
         if self.live is not None:
             self.live.open()
         t_loop = time.monotonic()  # the run's length and rate count from here, not the warm-up
+        # So does the wait for the first frame: a cold numba cache (~15 s on a
+        # fresh clone) is not a camera that sends nothing (`make run` said
+        # "lost: no frames from the camera for 14 s"). A missing device is
+        # told by its driver's state, not by this wait.
+        self.health.start_s = t_loop
         try:
             self.stats.period_start_s = t_loop
             self._loop(outputs, t_loop)
