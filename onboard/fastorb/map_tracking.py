@@ -17,6 +17,7 @@ from onboard.fastorb.matching import LkSettings, match_by_projection, track_lk
 from onboard.fastorb.motion import project
 from onboard.fastorb.params import FastOrbParams
 from onboard.fastorb.pose import PnpResult, PnpSettings, restricted, solve_pnp
+from onboard.fastorb.shutter import pixels_at_mid
 
 
 @dataclass
@@ -31,13 +32,21 @@ class MapTracking:
     lk: LkSettings
     pnp: PnpSettings
 
-    def solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray) -> PnpResult | None:
-        """PnP + RANSAC, then refinement against the landmarks
-        with this frame's depth at the tracked pixels (closer than
-        rgbd_max_depth_m) as disparity residuals."""
+    def solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray,
+              prior: np.ndarray | None = None, xi: np.ndarray | None = None) -> PnpResult | None:
+        """PnP + RANSAC (or the predicted pose `prior`, if more points agree
+        with it), then refinement against the landmarks with this frame's
+        depth at the tracked pixels (closer than rgbd_max_depth_m) as
+        disparity residuals. With a rolling shutter and the camera's twist
+        `xi` (per second), the pixels are first brought to the middle row's
+        instant (shutter.py), at the depth the landmark has under `prior`."""
         z = sample_depth(depth_m, uv, self.p.min_depth_m, self.p.rgbd_max_depth_m,
                          self.p.depth_edge_rel) if len(uv) else np.zeros(0)
-        return solve_pnp(xyz_W, uv, self.K, self.pnp, self.p.min_inliers, z)
+        readout = self.p.rolling_shutter_readout_s
+        if readout and xi is not None and prior is not None and len(uv):
+            uv = pixels_at_mid(uv, project(self.K, prior, xyz_W)[1], self.K, xi, readout,
+                               self.size[1])
+        return solve_pnp(xyz_W, uv, self.K, self.pnp, self.p.min_inliers, z, prior)
 
     def local_map(
         self,
@@ -46,6 +55,7 @@ class MapTracking:
         guess: np.ndarray,
         kept: Tracked,
         feats: Features | None = None,
+        xi: np.ndarray | None = None,
     ) -> Outcome | None:
         """Track against the local map: ORB with descriptors on this frame,
         matched to the landmarks of the key frames nearest to the pose `guess`
@@ -63,7 +73,7 @@ class MapTracking:
         kept.ids[near[older]] = found.ids[older]
         new = (near < 0) & ~np.isin(found.ids, kept.ids)
         both = kept.extended(found.subset(new))
-        pnp = self.solve(both.xyz_W, both.uv, frame.depth_m)
+        pnp = self.solve(both.xyz_W, both.uv, frame.depth_m, guess, xi)
         if pnp is None:
             return None
         return Outcome(pnp.T_cw, both.subset(pnp.inliers), restricted(pnp), feats)

@@ -55,9 +55,10 @@ from onboard.fastorb.matching import (
     match_by_ratio,
     track_lk,
 )
-from onboard.fastorb.motion import FrameClock, back_project, predict_uam, project
+from onboard.fastorb.motion import FrameClock, predict_uam, project
 from onboard.fastorb.params import FastOrbParams
 from onboard.fastorb.pose import PnpResult, PnpSettings, landmark_sd, restricted, solve_pnp
+from onboard.fastorb.shutter import points_at_mid, twist_rate
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,7 @@ class FastOrbTracker:
         self._history: deque[tuple[float, np.ndarray]] = deque(maxlen=3)  # (motion time, T_cw)
         self._clock = FrameClock()
         self._t_motion = 0.0  # the current frame's time for the motion model
+        self._xi = np.zeros(6)  # the camera's twist per second now (rolling shutter; shutter.py)
         self._last_T_cw: np.ndarray | None = None
         self._unfinished: Keyframe | None = None  # newest key, cloud not handed over yet
         self._next_keyframe_id = 0
@@ -153,6 +155,8 @@ class FastOrbTracker:
     def _track(self, frame: RgbdFrame, gray: np.ndarray) -> TrackResult:
         prior = predict_uam(*zip(*self._history), self._t_motion,
                             self.p.uam_accel_gain)  # step 2, Eqs. 14-15
+        t_last, T_last = self._history[-1]
+        self._xi = twist_rate(T_last, prior, self._t_motion - t_last)  # predicted
         moved = self._track_frame_to_frame(gray, prior)  # steps 2-4
         self._frames_since_keyframe += 1
         self._frames_since_map += 1
@@ -164,12 +168,13 @@ class FastOrbTracker:
         if n_in < self.p.local_map_min_inliers or self._keyframe_due(n_in):  # step 7
             guess = prior if outcome is None else outcome.T_cw
             kept = Tracked.empty() if outcome is None else outcome.tracked
-            found = self._maptrack.local_map(frame, gray, guess, kept)
+            found = self._maptrack.local_map(frame, gray, guess, kept, xi=self._xi)
             if found is not None and self._plausible(found.T_cw, prior):
                 outcome = found
         if outcome is None:
             log.debug("t=%.3f: no pose from %d followed points", frame.t_s, len(moved))
             return self._coast_or_lose(frame.t_s, prior, moved)
+        self._xi = twist_rate(T_last, outcome.T_cw, self._t_motion - t_last)  # measured
         self._coasted = 0
         firm = self._firm(outcome)
         new_key = (firm and outcome.features is not None
@@ -200,7 +205,7 @@ class FastOrbTracker:
         """PnP + RANSAC and refinement on the followed points; None without a
         fit or when the pose jumps implausibly far from the prediction (e.g.
         tracks dragged along by motion blur)."""
-        pnp = self._maptrack.solve(moved.xyz_W, moved.uv, depth_m)
+        pnp = self._maptrack.solve(moved.xyz_W, moved.uv, depth_m, prior, self._xi)
         if pnp is None or not self._plausible(pnp.T_cw, prior):
             log.debug("no pose from %d points: %s", len(moved),
                       "PnP failed" if pnp is None else "implausible jump")
@@ -272,7 +277,9 @@ class FastOrbTracker:
         n = int(ok.sum())
         ids = np.arange(self._next_landmark_id, self._next_landmark_id + n, dtype=np.int64)
         self._next_landmark_id += n
-        xyz = back_project(self.K, T_cw, uv[ok], z[ok])
+        p_C = points_at_mid(uv[ok], z[ok], self.K, self._xi, self.p.rolling_shutter_readout_s,
+                            self._size[1])
+        xyz = (p_C - T_cw[:3, 3]) @ T_cw[:3, :3]  # R^T (p_C - t), row-wise
         return Tracked(uv[ok].astype(np.float32), xyz, ids), ok
 
     # ------------------------------------------------------------ key frames
@@ -347,6 +354,7 @@ class FastOrbTracker:
 
     def _initialise(self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray) -> TrackResult:
         """A new map: this frame is the first key frame, at pose T_cw."""
+        self._xi = np.zeros(6)  # no motion known
         feats = self._detector.detect(gray, with_descriptors=True)
         first, _ = self._landmarks(frame, T_cw, feats.uv)
         if len(first) < self.p.keyframe_min_inliers:
@@ -377,6 +385,7 @@ class FastOrbTracker:
         around the pose found. Success re-enters the map with a jump, so
         reset_counter counts it; lost_reset_frames failures in a row start a
         new map at the last trusted pose."""
+        self._xi = np.zeros(6)  # no motion known
         feats = self._detector.detect(gray, with_descriptors=True)
         kfs, self._reloc_cursor = self._map.reloc_candidates(self._reloc_cursor,
                                                              self.p.reloc_keyframes)
