@@ -102,6 +102,7 @@ class FastOrbTracker:
         self._clock = FrameClock()
         self._t_motion = 0.0  # the current frame's time for the motion model
         self._xi = np.zeros(6)  # the camera's twist per second now (rolling shutter; shutter.py)
+        self._before_lost: tuple[tuple[float, np.ndarray], ...] = ()  # the motion model's poses
         self._last_T_cw: np.ndarray | None = None
         self._unfinished: Keyframe | None = None  # newest key, cloud not handed over yet
         self._next_keyframe_id = 0
@@ -374,6 +375,7 @@ class FastOrbTracker:
         self._lost_frames = 1
         self._reloc_cursor = 0
         self._tracked = Tracked.empty()
+        self._before_lost = tuple(self._history)
         self._history.clear()
         return self._unposed(t_s, TrackState.LOST, reason)
 
@@ -400,16 +402,35 @@ class FastOrbTracker:
                                             feats)
             if outcome is None or outcome.inliers < self.p.reloc_min_inliers:
                 continue
-            self._reset_counter += 1
+            continues = self._continues(outcome.T_cw)
+            self._reset_counter += int(not continues)
             self._state = TrackState.TRACKING
             self._lost_frames = 0
             finished = self._make_keyframe(frame, gray, outcome)
-            return self._tracked_result(frame.t_s, outcome, True, finished, history_reset=True)
+            return self._tracked_result(frame.t_s, outcome, True, finished,
+                                        history_reset=not continues)
         self._lost_frames += 1
         if self._lost_frames > self.p.lost_reset_frames:
             self._reset_counter += 1
             return self._initialise(frame, gray, self._initial_pose(frame.t_s, attitude))
         return self._unposed(frame.t_s, TrackState.LOST, "re-localisation failed")
+
+    def _continues(self, T_cw: np.ndarray) -> bool:
+        """Whether a re-localised pose continues the trajectory: found within
+        max_coast_frames of the last pose (as long as tracking may coast) and
+        where the motion model of the poses before the loss puts it, by the
+        test every tracked pose passes (_plausible). Then it is no jump (the
+        map is the same), so no reset, and the motion model goes on. On
+        tum_fr1_rpy one blurred frame lost the track and the next re-localised
+        in place: a reset the autopilot had to handle for nothing."""
+        if self._lost_frames > self.p.max_coast_frames or len(self._before_lost) < 3:
+            return False
+        self._history.extend(self._before_lost)
+        prior = predict_uam(*zip(*self._history), self._t_motion, self.p.uam_accel_gain)
+        if self._plausible(T_cw, prior):
+            return True
+        self._history.clear()
+        return False
 
     # ---------------------------------------------------------------- results
     def _tracked_result(self, t_s: float, outcome: Outcome, new_key: bool,
