@@ -215,8 +215,8 @@ def test_keyframe_clouds_lie_on_the_scene(flight_frames, room: Room) -> None:
 
 def test_lost_then_relocalised_bumps_reset_counter(flight_frames) -> None:
     """Blank frames (nothing to track): lost, no pose. Back at a view the key
-    frames know: re-localised against them by descriptors, with reset_counter
-    + 1, at the right pose."""
+    frames know after longer than tracking may coast: re-localised against
+    them by descriptors, with reset_counter + 1, at the right pose."""
     poses, frames = flight_frames
     tracker = FastOrbTracker(INTR)
     for f in frames[:10]:
@@ -226,15 +226,32 @@ def test_lost_then_relocalised_bumps_reset_counter(flight_frames) -> None:
     assert not lost.trusted and lost.state is TrackState.LOST
     assert lost.p_W_m is None and lost.R_W_C is None and lost.quality == 0
     assert lost.lost_reason and lost.reset_counter == 0
-    blank2 = RgbdFrame(frames[11].t_s, np.zeros_like(frames[11].bgr), frames[11].depth_m)
-    still = tracker.track(blank2, NoAttitude())
-    assert not still.trusted and still.state is TrackState.LOST
+    for k in range(11, 11 + tracker.p.max_coast_frames):
+        blank2 = RgbdFrame(frames[k].t_s, np.zeros_like(frames[k].bgr), frames[k].depth_m)
+        still = tracker.track(blank2, NoAttitude())
+        assert not still.trusted and still.state is TrackState.LOST
     back = tracker.track(frames[4], NoAttitude())  # a view seen before
     assert back.trusted and back.state is TrackState.TRACKING
     assert back.reset_counter == 1
     np.testing.assert_allclose(back.p_W_m, poses[4][1], atol=0.01)
     after = tracker.track(frames[5], NoAttitude())
     assert after.trusted and after.reset_counter == 1
+
+
+def test_one_blank_frame_is_bridged_without_a_reset(flight_frames) -> None:
+    """One unusable frame (tum_fr1_rpy: motion blur) loses the track; the next
+    re-localises where the motion model expects it: the same map, no jump, so
+    no reset for the autopilot, and the pose is right."""
+    poses, frames = flight_frames
+    tracker = FastOrbTracker(INTR)
+    for f in frames[:10]:
+        assert tracker.track(f, NoAttitude()).trusted
+    blank = RgbdFrame(frames[10].t_s, np.zeros_like(frames[10].bgr), frames[10].depth_m)
+    assert tracker.track(blank, NoAttitude()).state is TrackState.LOST
+    back = tracker.track(frames[11], NoAttitude())
+    assert back.trusted and back.reset_counter == 0
+    np.testing.assert_allclose(back.p_W_m, poses[11][1], atol=0.01)
+    assert tracker.track(frames[12], NoAttitude()).reset_counter == 0
 
 
 def test_same_input_same_output(flight_frames) -> None:

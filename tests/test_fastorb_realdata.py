@@ -106,3 +106,26 @@ def test_a_rolling_shutter_pose_is_found_with_the_correction_and_biased_without(
     assert fixed is not None and fixed.inliers.all()
     assert angle_deg(fixed.T_cw) < 0.01
     assert plain is None or plain.inliers.sum() < len(X) or angle_deg(plain.T_cw) > 0.05
+
+
+def test_the_rows_shear_measures_the_rate_the_motion_model_got_wrong():
+    """The rate from two poses is half a frame old and as noisy as they are;
+    the shear of a few hundred points over the rows measures it."""
+    from onboard.fastorb.shutter import refine_with_rate
+
+    X = _scene(300, seed=7)
+    T_mid = _truth()
+    xi = np.array([0.5, 1.3, -0.4, 0.1, 0.05, 0.0])
+    readout = 0.028
+    uv_rs = _rolling_shutter_pixels(X, T_mid, xi, readout)
+    guess = xi.copy()
+    guess[:3] += np.array([0.4, -0.5, 0.3])  # 40 deg/s off
+    start = se3_exp(np.array([0.003, -0.002, 0.001, 0.004, 0.002, -0.003])) @ T_mid
+    T, omega = refine_with_rate(start, X, uv_rs, np.zeros(len(X)), K, 0.0, 1.0, readout, H,
+                                guess, rate_sd=0.5)
+    assert np.linalg.norm(omega - xi[:3]) < 0.05
+    assert np.linalg.norm((T @ inverse(T_mid))[:3, 3]) < 1e-3
+    # A global shutter (no readout) leaves nothing to measure: the prior stays.
+    T0, omega0 = refine_with_rate(start, X, project(K, T_mid, X)[0], np.zeros(len(X)), K, 0.0,
+                                  1.0, 0.0, H, guess, rate_sd=0.5)
+    assert np.allclose(omega0, guess[:3], atol=1e-6)

@@ -227,6 +227,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.quality_sd_m": POSITIVE,
     "fastorb.clahe_clip_limit": POSITIVE,
     "fastorb.rolling_shutter_readout_s": Range(lo=0.0, hi=0.1),  # rows read out within a frame
+    "fastorb.rolling_shutter_rate_sd": POSITIVE,
     "fastorb.local_ba_depth_sd": POSITIVE,
     "fastorb.local_ba_pixel_sd": POSITIVE,
     "fastorb.local_ba_max_points": POSITIVE,
@@ -269,6 +270,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fastorb.max_keyframes": POSITIVE,
     "fastorb.match_radius_px": POSITIVE,
     "fastorb.match_max_hamming": Range(0, 256),
+    "fastorb.map_match_lk_px": NON_NEGATIVE,
     "fastorb.reloc_ratio": SHARE,
     "fastorb.reloc_min_inliers": Range(lo=6),
     # outputs: MAVLink

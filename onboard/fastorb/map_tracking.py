@@ -17,7 +17,7 @@ from onboard.fastorb.matching import LkSettings, match_by_projection, track_lk
 from onboard.fastorb.motion import project
 from onboard.fastorb.params import FastOrbParams
 from onboard.fastorb.pose import PnpResult, PnpSettings, restricted, solve_pnp
-from onboard.fastorb.shutter import pixels_at_mid
+from onboard.fastorb.shutter import pixels_at_mid, refine_with_rate
 
 
 @dataclass
@@ -31,6 +31,7 @@ class MapTracking:
     map: LocalMap
     lk: LkSettings
     pnp: PnpSettings
+    rate: np.ndarray | None = None  # body rate [rad/s] the last solve measured (rolling shutter)
 
     def solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray,
               prior: np.ndarray | None = None, xi: np.ndarray | None = None) -> PnpResult | None:
@@ -43,10 +44,28 @@ class MapTracking:
         z = sample_depth(depth_m, uv, self.p.min_depth_m, self.p.rgbd_max_depth_m,
                          self.p.depth_edge_rel) if len(uv) else np.zeros(0)
         readout = self.p.rolling_shutter_readout_s
-        if readout and xi is not None and prior is not None and len(uv):
-            uv = pixels_at_mid(uv, project(self.K, prior, xyz_W)[1], self.K, xi, readout,
-                               self.size[1])
-        return solve_pnp(xyz_W, uv, self.K, self.pnp, self.p.min_inliers, z, prior)
+        self.rate = None
+        if not (readout and xi is not None and prior is not None and len(uv)):
+            return solve_pnp(xyz_W, uv, self.K, self.pnp, self.p.min_inliers, z, prior)
+        depth = project(self.K, prior, xyz_W)[1]
+        fit = solve_pnp(xyz_W, pixels_at_mid(uv, depth, self.K, xi, readout, self.size[1]),
+                        self.K, self.pnp, self.p.min_inliers, z, prior)
+        if fit is None:
+            return None
+        # The rate the rows' shear shows (shutter.refine_with_rate), then the
+        # pose again on pixels brought to the middle row with it: the motion
+        # model's rate is the last interval's, half a frame old and as noisy
+        # as two poses (tum_fr1_rpy: lag-1 RPE 9.4 -> 12.1 mm with it alone).
+        inl = fit.inliers
+        disp = np.where(z > 0, self.pnp.bf_px / np.where(z > 0, z, 1.0), 0.0)
+        T, omega = refine_with_rate(fit.T_cw, xyz_W[inl], uv[inl], disp[inl], self.K,
+                                    self.pnp.bf_px, self.pnp.huber_px, readout, self.size[1],
+                                    xi, self.p.rolling_shutter_rate_sd)
+        self.rate = omega
+        xi = np.concatenate([omega, xi[3:]])
+        return solve_pnp(xyz_W, pixels_at_mid(uv, project(self.K, T, xyz_W)[1], self.K, xi,
+                                              readout, self.size[1]),
+                         self.K, self.pnp, self.p.min_inliers, z, T)
 
     def local_map(
         self,
@@ -64,7 +83,7 @@ class MapTracking:
         does not outlive the return to a mapped view."""
         if feats is None:
             feats = self.detector.detect(gray, with_descriptors=True)
-        found = self.match_map(feats, guess)
+        found = self.match_map(feats, guess, gray)
         near = self.detector.pair_with(kept.uv, found.uv, 2.0)  # kept index per found point, -1: none
         older = near >= 0
         older[older] = found.ids[older] < kept.ids[near[older]]
@@ -102,7 +121,7 @@ class MapTracking:
             parts.append(Tracked(at[ok], mp.xyz_W[rows[g[ok]]], mp.ids[rows[g[ok]]]))
         return Tracked.joined(parts)
 
-    def match_map(self, feats: Features, guess: np.ndarray) -> Tracked:
+    def match_map(self, feats: Features, guess: np.ndarray, gray: np.ndarray) -> Tracked:
         """Keypoints matched to local-map landmarks by projection and descriptor."""
         mp = self.map.points_near(guess)
         uv_map, z_map = project(self.K, guess, mp.xyz_W)
@@ -114,4 +133,26 @@ class MapTracking:
             self.p.match_max_hamming,
         )
         map_i = view[map_i]
-        return Tracked(feats.uv[kp_i].astype(np.float32), mp.xyz_W[map_i], mp.ids[map_i])
+        uv = feats.uv[kp_i].astype(np.float32)
+        if self.p.map_match_lk_px > 0:
+            uv = self._lk_refined(gray, mp, map_i, uv)
+        return Tracked(uv, mp.xyz_W[map_i], mp.ids[map_i])
+
+    def _lk_refined(self, gray: np.ndarray, mp, rows: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """The matched keypoints' pixels moved to where LK from each
+        landmark's key frame puts the landmark, if within map_match_lk_px.
+        An ORB keypoint of octave k sits within about 1.2^k / 2 px of its
+        corner (ORB-SLAM2 weighs it by 1 / 1.2^(2k)); a landmark found again
+        by it keeps that offset in every frame LK then follows it through,
+        while the landmark's position belongs to the pixel of the key frame
+        that made it. LK from that key frame's image lands on the same
+        texture to a tenth of a pixel (where the view has not turned or
+        scaled too far; elsewhere the keypoint stays)."""
+        out = uv.copy()
+        kf = mp.kf[rows]
+        for slot in np.unique(kf):
+            g = np.flatnonzero(kf == slot)
+            at, ok = track_lk(mp.keyframes[slot].gray, gray, mp.uv[rows[g]], uv[g], self.lk)
+            ok &= np.sum((at - uv[g]) ** 2, axis=1) <= self.p.map_match_lk_px**2
+            out[g[ok]] = at[ok]
+        return out

@@ -48,6 +48,7 @@ class FastOrbParams:
     max_jump_deg: float = 15.0  # ... or turned this far from it is not believed
     max_coast_frames: int = 3  # frames without a believed pose before lost
     rolling_shutter_readout_s: float = 0.0  # colour rows read out over this time, top first; 0: global (shutter.py)
+    rolling_shutter_rate_sd: float = 0.5  # body rate's change per frame the shear fit allows (1 sd) [rad/s]
     # Landmarks from depth
     landmark_max_sd_m: float = 0.002  # no new landmarks from a pose placing them worse (1 sd, pose.landmark_sd)
     min_depth_m: float = 0.2
@@ -71,6 +72,7 @@ class FastOrbParams:
     max_keyframes: int = 50  # kept for the local map and re-localisation
     match_radius_px: float = 15.0  # local map: keypoint this close to a landmark's projection
     match_max_hamming: int = 64  # ... and this close in descriptor
+    map_match_lk_px: float = 0.0  # >0: matched keypoint moved to LK from the landmark's key frame if this close [px]
     # Lost and re-localisation
     reloc_keyframes: int = 4  # key frames tried per lost frame besides the two newest
     reloc_ratio: float = 0.8  # Lowe's ratio test (no pose prior)

@@ -102,6 +102,7 @@ class FastOrbTracker:
         self._clock = FrameClock()
         self._t_motion = 0.0  # the current frame's time for the motion model
         self._xi = np.zeros(6)  # the camera's twist per second now (rolling shutter; shutter.py)
+        self._rate: np.ndarray | None = None  # the last posed frame's measured body rate
         self._before_lost: tuple[tuple[float, np.ndarray], ...] = ()  # the motion model's poses
         self._last_T_cw: np.ndarray | None = None
         self._unfinished: Keyframe | None = None  # newest key, cloud not handed over yet
@@ -156,8 +157,7 @@ class FastOrbTracker:
     def _track(self, frame: RgbdFrame, gray: np.ndarray) -> TrackResult:
         prior = predict_uam(*zip(*self._history), self._t_motion,
                             self.p.uam_accel_gain)  # step 2, Eqs. 14-15
-        t_last, T_last = self._history[-1]
-        self._xi = twist_rate(T_last, prior, self._t_motion - t_last)  # predicted
+        self._xi = self._twist()
         moved = self._track_frame_to_frame(gray, prior)  # steps 2-4
         self._frames_since_keyframe += 1
         self._frames_since_map += 1
@@ -175,8 +175,10 @@ class FastOrbTracker:
         if outcome is None:
             log.debug("t=%.3f: no pose from %d followed points", frame.t_s, len(moved))
             return self._coast_or_lose(frame.t_s, prior, moved)
-        self._xi = twist_rate(T_last, outcome.T_cw, self._t_motion - t_last)  # measured
         self._coasted = 0
+        self._rate = self._maptrack.rate  # measured by the rows' shear (None: global shutter)
+        if self._rate is not None:
+            self._xi = np.concatenate([self._rate, self._xi[3:]])
         firm = self._firm(outcome)
         new_key = (firm and outcome.features is not None
                    and outcome.inliers >= self.p.keyframe_min_inliers)
@@ -193,6 +195,19 @@ class FastOrbTracker:
         elif firm and outcome.inliers < self.p.redetect_min_inliers:
             outcome.tracked = self._replenish(frame, gray, outcome.T_cw, outcome.tracked)
         return self._tracked_result(frame.t_s, outcome, new_key, finished)
+
+    def _twist(self) -> np.ndarray:
+        """The camera's twist per second for the rolling shutter: the last
+        interval's (constant velocity). Not the UAM prediction's, whose
+        acceleration term doubles the poses' noise, nor this frame's pose,
+        which the correction itself moves."""
+        if len(self._history) < 2:
+            return np.zeros(6)
+        (t0, T0), (t1, T1) = self._history[-2], self._history[-1]
+        xi = twist_rate(T0, T1, t1 - t0)
+        if self._rate is not None:  # the last frame's shear-measured rate is fresher
+            xi[:3] = self._rate
+        return xi
 
     def _firm(self, outcome: Outcome) -> bool:
         """Whether the pose is firm enough to place new landmarks with: the
@@ -355,7 +370,7 @@ class FastOrbTracker:
 
     def _initialise(self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray) -> TrackResult:
         """A new map: this frame is the first key frame, at pose T_cw."""
-        self._xi = np.zeros(6)  # no motion known
+        self._xi, self._rate = np.zeros(6), None  # no motion known
         feats = self._detector.detect(gray, with_descriptors=True)
         first, _ = self._landmarks(frame, T_cw, feats.uv)
         if len(first) < self.p.keyframe_min_inliers:
@@ -387,7 +402,7 @@ class FastOrbTracker:
         around the pose found. Success re-enters the map with a jump, so
         reset_counter counts it; lost_reset_frames failures in a row start a
         new map at the last trusted pose."""
-        self._xi = np.zeros(6)  # no motion known
+        self._xi, self._rate = np.zeros(6), None  # no motion known
         feats = self._detector.detect(gray, with_descriptors=True)
         kfs, self._reloc_cursor = self._map.reloc_candidates(self._reloc_cursor,
                                                              self.p.reloc_keyframes)
