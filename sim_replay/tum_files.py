@@ -53,12 +53,18 @@ _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
 
 
 # Published TUM RGB-D colour intrinsics (vision.in.tum.de, "Intrinsic Camera Calibration").
+# The TUM sequences come from Kinect-class RGB-D cameras whose colour sensor
+# is a rolling shutter; 28 ms from the first row to the last is the readout
+# Kerl, Stueckler and Cremers used for such a camera (ICCV 2015, "Dense
+# Continuous-Time Tracking and Mapping with Rolling Shutter RGB-D Cameras").
+_KINECT_READOUT_S = 0.028
 _TUM_CAMERAS: dict[int, CameraModel] = {
     1: CameraModel(517.3, 516.5, 318.6, 255.3, 640, 480, 5000.0,
-                   (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+                   (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), readout_s=_KINECT_READOUT_S),
     2: CameraModel(520.9, 521.0, 325.1, 249.7, 640, 480, 5000.0,
-                   (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
-    3: CameraModel(535.4, 539.2, 320.1, 247.6, 640, 480, 5000.0, ()),
+                   (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), readout_s=_KINECT_READOUT_S),
+    3: CameraModel(535.4, 539.2, 320.1, 247.6, 640, 480, 5000.0, (),
+                   readout_s=_KINECT_READOUT_S),
 }
 
 
@@ -96,7 +102,8 @@ def _camera_from_toml(path: Path) -> CameraModel:
     except tomllib.TOMLDecodeError as e:
         raise NislamError(f"{path}: not valid TOML: {e}") from None
 
-    known = {"fx", "fy", "cx", "cy", "width", "height", "depth_scale", "distortion", "q_B_C_xyzw"}
+    known = {"fx", "fy", "cx", "cy", "width", "height", "depth_scale", "distortion", "q_B_C_xyzw",
+             "readout_s"}
     unknown = sorted(set(raw) - known)
     if unknown:
         raise NislamError(f"{path}: unknown key '{unknown[0]}' (known: {', '.join(sorted(known))})")
@@ -149,7 +156,11 @@ def _camera_from_toml(path: Path) -> CameraModel:
         if len(qv) != 4 or norm < 1e-6:
             raise NislamError(f"{path}: key 'q_B_C_xyzw' must be 4 numbers of non-zero norm")
         q = tuple(c / norm for c in qv)  # type: ignore[assignment]
-    return CameraModel(fx, fy, cx, cy, width, height, depth_scale, distortion, q)
+    readout = number("readout_s") if "readout_s" in raw else 0.0
+    if not 0.0 <= readout <= 0.1:
+        raise NislamError(
+            f"{path}: key 'readout_s' must be 0 (global shutter) to 0.1 s, got {readout}")
+    return CameraModel(fx, fy, cx, cy, width, height, depth_scale, distortion, q, readout)
 
 
 def read_file_list(path: Path | str) -> tuple[list[tuple[float, str]], int]:

@@ -129,3 +129,34 @@ def test_the_rows_shear_measures_the_rate_the_motion_model_got_wrong():
     T0, omega0 = refine_with_rate(start, X, project(K, T_mid, X)[0], np.zeros(len(X)), K, 0.0,
                                   1.0, 0.0, H, guess, rate_sd=0.5)
     assert np.allclose(omega0, guess[:3], atol=1e-6)
+
+
+def test_the_readout_is_the_cameras_unless_configured(tmp_path):
+    """A rolling shutter is a property of the camera: the TUM reader knows
+    the Kinect-class cameras', a camera.toml may give one, the synthetic
+    flights' (no key) is a global shutter; [fastorb] overrides it."""
+    import pytest
+
+    from onboard import NislamError
+    from onboard.core.camera import CameraIntrinsics
+    from onboard.fastorb.params import FastOrbParams
+    from onboard.fastorb.tracker import FastOrbTracker
+    from sim_replay.tum_files import load_camera
+
+    fr1 = tmp_path / "rgbd_dataset_freiburg1_rpy"
+    fr1.mkdir()
+    assert load_camera(fr1).intrinsics().readout_s == 0.028
+    own = tmp_path / "own"
+    own.mkdir()
+    base = "fx = 500.0\nfy = 500.0\ncx = 320.0\ncy = 240.0\nwidth = 640\nheight = 480\n"
+    (own / "camera.toml").write_text(base + "depth_scale = 1000.0\n")
+    assert load_camera(own).readout_s == 0.0
+    (own / "camera.toml").write_text(base + "depth_scale = 1000.0\nreadout_s = 0.02\n")
+    assert load_camera(own).readout_s == 0.02
+    (own / "camera.toml").write_text(base + "depth_scale = 1000.0\nreadout_s = 0.5\n")
+    with pytest.raises(NislamError, match="readout_s"):
+        load_camera(own)
+    intr = CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480, 0.028)
+    assert FastOrbTracker(intr).p.rolling_shutter_readout_s == 0.028
+    off = FastOrbParams(rolling_shutter_readout_s=0.0)
+    assert FastOrbTracker(intr, off).p.rolling_shutter_readout_s == 0.0

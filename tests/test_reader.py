@@ -107,7 +107,7 @@ def test_fr1_rpy_opens_complete(shared_data, caplog):
     assert 1.0 < seq.stamps.residual_rms_ms < 2.0
     assert len(open_sequence(shared_data / "tum_fr1_rpy", stamp_window_s=0.0)) == 694
     assert np.all(np.diff(seq.frame_times_s) > 0)
-    assert seq.intrinsics == CameraIntrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
+    assert seq.intrinsics == CameraIntrinsics(517.3, 516.5, 318.6, 255.3, 640, 480, 0.028)
     assert seq.groundtruth is not None and seq.attitude is None
     # unpaired entries are normal for TUM: no warning for a complete recording
     assert _reader_warnings(caplog) == []

@@ -226,7 +226,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.axes_gain": FRACTION,
     "fusion.quality_sd_m": POSITIVE,
     "fastorb.clahe_clip_limit": POSITIVE,
-    "fastorb.rolling_shutter_readout_s": Range(lo=0.0, hi=0.1),  # rows read out within a frame
+    "fastorb.rolling_shutter_readout_s": Range(lo=-1.0, hi=0.1),  # -1: the camera's
     "fastorb.rolling_shutter_rate_sd": POSITIVE,
     "fastorb.local_ba_depth_sd": POSITIVE,
     "fastorb.local_ba_pixel_sd": POSITIVE,

@@ -22,6 +22,7 @@ class CameraIntrinsics:
     cy: float
     width: int
     height: int
+    readout_s: float = 0.0  # rolling shutter: rows read out over this time, top first; 0: global
 
 
 @dataclass(frozen=True)
@@ -30,7 +31,8 @@ class CameraModel:
 
     `depth_scale`: depth PNG units per metre (TUM 5000, millimetre sensors 1000,
     0 = no depth). `distortion`: OpenCV k1 k2 p1 p2 k3 (empty = none).
-    `q_B_C_xyzw`: camera-optical-to-body rotation.
+    `q_B_C_xyzw`: camera-optical-to-body rotation. `readout_s`: a rolling
+    shutter's time from the first row to the last (0: global shutter).
     """
 
     fx: float
@@ -42,9 +44,11 @@ class CameraModel:
     depth_scale: float = 5000.0
     distortion: tuple[float, ...] = ()
     q_B_C_xyzw: tuple[float, float, float, float] = IDENTITY_Q_XYZW
+    readout_s: float = 0.0
 
     def intrinsics(self) -> CameraIntrinsics:
-        return CameraIntrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+        return CameraIntrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height,
+                                self.readout_s)
 
     def k_matrix(self) -> np.ndarray:
         return np.array(

@@ -47,7 +47,7 @@ class FastOrbParams:
     max_jump_m: float = 0.2  # a pose this far from the prediction (per frame period) ...
     max_jump_deg: float = 15.0  # ... or turned this far from it is not believed
     max_coast_frames: int = 3  # frames without a believed pose before lost
-    rolling_shutter_readout_s: float = 0.0  # colour rows read out over this time, top first; 0: global (shutter.py)
+    rolling_shutter_readout_s: float = -1.0  # colour rows read out over this time, top first; 0: global; -1: the camera's (shutter.py)
     rolling_shutter_rate_sd: float = 0.5  # body rate's change per frame the shear fit allows (1 sd) [rad/s]
     # Landmarks from depth
     landmark_max_sd_m: float = 0.002  # no new landmarks from a pose placing them worse (1 sd, pose.landmark_sd)

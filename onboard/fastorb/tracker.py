@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -69,6 +70,8 @@ class FastOrbTracker:
     name = "fastorb"
 
     def __init__(self, intrinsics: CameraIntrinsics, params: FastOrbParams = FastOrbParams()):
+        if params.rolling_shutter_readout_s < 0:  # the camera's own (0: a global shutter)
+            params = replace(params, rolling_shutter_readout_s=intrinsics.readout_s)
         p = params
         self.intr = intrinsics
         self.p = p
