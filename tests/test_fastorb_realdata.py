@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from onboard.core.se3 import inverse, make_pose, se3_exp
+from onboard.core.se3 import inverse, se3_exp
 from onboard.fastorb import pose as fastorb_pose
 from onboard.fastorb.motion import project
 from onboard.fastorb.pose import PnpSettings, solve_pnp
@@ -36,7 +36,7 @@ def test_a_ransac_refit_far_off_is_replaced_by_the_motion_prior(monkeypatch):
     X = _scene()
     T = _truth()
     uv = project(K, T, X)[0] + np.random.default_rng(1).normal(0, 0.3, (len(X), 2))
-    far = make_pose(np.eye(3), np.array([0.9, -0.6, 0.7])) @ T
+    far = se3_exp(np.array([0.0, 2.0, 0.0, 0.9, -0.6, 0.7])) @ T  # turned 115 deg: no way back
     all_in = np.ones(len(X), bool)
     monkeypatch.setattr(fastorb_pose, "_ransac", lambda *a: (far, all_in))
     s = PnpSettings()
@@ -48,6 +48,10 @@ def test_a_ransac_refit_far_off_is_replaced_by_the_motion_prior(monkeypatch):
     # Without the prior the far re-fit is all there is: no pose (or a wrong one).
     bad = solve_pnp(X, uv, K, s, 30)
     assert bad is None or np.linalg.norm((inverse(bad.T_cw) @ T)[:3, 3]) > 0.05
+    # A RANSAC pose that more points agree with than with the prior wins.
+    monkeypatch.setattr(fastorb_pose, "_ransac", lambda *a: (T, all_in))
+    fit = solve_pnp(X, uv, K, s, 30, prior=far)
+    assert fit is not None and np.linalg.norm((inverse(fit.T_cw) @ T)[:3, 3]) < 2e-3
 
 
 def _rolling_shutter_pixels(X, T_mid, xi, readout):

@@ -125,17 +125,18 @@ def _start(
     strong, and the Gauss-Newton refinement cannot come back from there
     (the track was lost twice, 2 resets). ORB-SLAM2 tracks from the motion
     model's pose and keeps PnP RANSAC for re-localisation; here both compete."""
-    if prior is None and found is None:
-        return None
-    cands = ([] if found is None else [found[0]]) + ([] if prior is None else [prior])
-    best = None
-    for T in cands:
+    if prior is None:
+        return found
+
+    def agreeing(T: np.ndarray) -> np.ndarray:
         err = pose_residual_norms(np.ascontiguousarray(T[:3, :3]), T[:3, 3].copy(), obj, img,
                                   np.zeros(len(obj)), K[0, 0], K[1, 1], K[0, 2], K[1, 2], 0.0)
-        inl = err <= s.reprojection_px
-        if best is None or inl.sum() > best[1].sum():
-            best = (T, inl)
-    return best
+        return err <= s.reprojection_px
+
+    at_prior = agreeing(prior)
+    if found is not None and agreeing(found[0]).sum() >= at_prior.sum():
+        return found  # RANSAC's pose and its own consensus set, as without a prior
+    return prior, at_prior
 
 
 def _refine(
