@@ -101,6 +101,8 @@ def test_cpu_time_is_the_loop_threads_own(clock: Clock, monkeypatch: pytest.Monk
     assert fields["stages_cpu_ms"]["tracker"]["p50"] == pytest.approx(3.0, abs=0.05)
     assert fields["stages_cpu_ms"]["loop_frame"]["max"] == pytest.approx(5.2)
     assert fields["stages_ms"]["tracker"]["max"] == pytest.approx(12.0)
+    (loop,) = [line for line in t.summary_lines({}) if line.startswith("loop")]
+    assert "tracker p99 12.0" in loop and "tracker CPU p50 3.0, p99 3.0" in loop
 
 
 def test_minute_figures_and_the_verbose_line(clock: Clock) -> None:

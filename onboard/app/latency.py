@@ -292,7 +292,8 @@ class LoopTiming:
         lines.append("loop        " + ", ".join(
             f"{k} {_ms(self.stages[k].percentile(50))}" for k in LOOP_STAGES)
             + f" (p50); tracker p99 {_ms(tr.percentile(99))}, frame p99 "
-            f"{_ms(self.frame_loop.percentile(99))}")
+            f"{_ms(self.frame_loop.percentile(99))}; tracker CPU p50 "
+            f"{_ms(self.tracker_cpu.percentile(50))}, p99 {_ms(self.tracker_cpu.percentile(99))}")
         return lines
 
     def flush_csv(self, final: bool = True) -> None:
