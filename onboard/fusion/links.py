@@ -34,6 +34,7 @@ class Link:
     used: int = 0
     left_out: collections.Counter = field(default_factory=collections.Counter)
     reanchors: collections.Counter = field(default_factory=collections.Counter)
+    closing: bool = False  # this frame closes a loop (back on a key whose clone is held)
     skipped: bool = False  # its last frame was left out as an outlier, its reference kept
     nis_sum: float = 0.0
     nis_n: int = 0
