@@ -96,27 +96,32 @@ def refine_with_rate(
     has = (disp > 0) & (bf_px > 0)
     for _ in range(iterations):
         p = obj @ T_cw[:3, :3].T + T_cw[:3, 3]
-        q = p + tau[:, None] * (np.cross(omega, p) + rho)
+        wx, wy, wz = omega
+        cross = np.stack([wy * p[:, 2] - wz * p[:, 1], wz * p[:, 0] - wx * p[:, 2],
+                          wx * p[:, 1] - wy * p[:, 0]], axis=1)  # omega x p
+        q = p + tau[:, None] * (cross + rho)
         iz = 1.0 / np.maximum(q[:, 2], 1e-6)
         r = np.stack([fx * q[:, 0] * iz + K[0, 2] - uv[:, 0],
                       fy * q[:, 1] * iz + K[1, 2] - uv[:, 1],
                       np.where(has, bf_px * iz - disp, 0.0)], axis=1)
-        Jpi = np.zeros((len(q), 3, 3))
-        Jpi[:, 0, 0], Jpi[:, 0, 2] = fx * iz, -fx * q[:, 0] * iz**2
-        Jpi[:, 1, 1], Jpi[:, 1, 2] = fy * iz, -fy * q[:, 1] * iz**2
-        Jpi[has, 2, 2] = -bf_px * iz[has] ** 2
-        px = np.zeros((len(p), 3, 3))  # -[p]x
-        px[:, 0, 1], px[:, 0, 2] = p[:, 2], -p[:, 1]
-        px[:, 1, 0], px[:, 1, 2] = -p[:, 2], p[:, 0]
-        px[:, 2, 0], px[:, 2, 1] = p[:, 1], -p[:, 0]
+        # J_pi rows times -[p]x, written out: d(u, v, d)/d(phi) at q ~ p
+        x, y, zz = p[:, 0], p[:, 1], p[:, 2]
+        a, b, c = fx * iz, -fx * q[:, 0] * iz**2, fy * iz
+        e, dd = -fy * q[:, 1] * iz**2, np.where(has, -bf_px * iz**2, 0.0)
         J = np.zeros((len(p), 3, 9))
-        J[:, :, :3] = Jpi @ px
-        J[:, :, 3:6] = Jpi
-        J[:, :, 6:] = tau[:, None, None] * (Jpi @ px)
-        norm = np.linalg.norm(r, axis=1)
+        J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = b * y, a * zz - b * x, -a * y
+        J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = -c * zz + e * y, -e * x, c * x
+        J[:, 2, 0], J[:, 2, 1] = dd * y, -dd * x
+        J[:, 0, 3], J[:, 0, 5] = a, b
+        J[:, 1, 4], J[:, 1, 5] = c, e
+        J[:, 2, 5] = dd
+        J[:, :, 6:] = tau[:, None, None] * J[:, :, :3]
+        norm = np.sqrt(np.sum(r * r, axis=1))
         w = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))
-        H = np.einsum("n,nij,nik->jk", w, J, J)
-        g = np.einsum("n,nij,ni->j", w, J, r)
+        Jf = J.reshape(-1, 9)
+        Jw = Jf * np.repeat(w, 3)[:, None]
+        H = Jw.T @ Jf
+        g = Jw.T @ r.reshape(-1)
         H[6:, 6:] += np.eye(3) / rate_sd**2
         g[6:] += (omega - xi_prior[:3]) / rate_sd**2
         try:
