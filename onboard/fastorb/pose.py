@@ -116,9 +116,10 @@ def _start(
     found: tuple[np.ndarray, np.ndarray] | None, prior: np.ndarray | None, obj: np.ndarray,
     img: np.ndarray, K: np.ndarray, s: PnpSettings,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """(T_cw, inliers) to refine from: RANSAC's pose or the prior, whichever
-    has more points within reprojection_px, inliers counted under the pose
-    itself. OpenCV's AP3P RANSAC re-fits its consensus set with EPnP, and
+    """(T_cw, inliers) to refine from: RANSAC's pose and consensus set,
+    unless its re-fit pose agrees (within reprojection_px) with fewer points
+    than that set and the prior with more than the re-fit: then the prior
+    and the points that agree with it. OpenCV's AP3P RANSAC re-fits its consensus set with EPnP, and
     that re-fit can land far off: on the synthetic `circle` flight (a
     column 1.2 m away filling the view) it returned a pose 1.3 m from the
     truth with a 12.7 px median error for a set RANSAC counted 498 of 530
@@ -133,10 +134,16 @@ def _start(
                                   np.zeros(len(obj)), K[0, 0], K[1, 1], K[0, 2], K[1, 2], 0.0)
         return err <= s.reprojection_px
 
+    if found is None:
+        at_prior = agreeing(prior)
+        return (prior, at_prior) if at_prior.any() else None
+    n_fit = int(agreeing(found[0]).sum())
+    if n_fit >= found[1].sum():
+        return found  # the re-fit kept its consensus set: as without a prior
     at_prior = agreeing(prior)
-    if found is not None and agreeing(found[0]).sum() >= at_prior.sum():
-        return found  # RANSAC's pose and its own consensus set, as without a prior
-    return prior, at_prior
+    if n_fit >= at_prior.sum():
+        return found
+    return prior, at_prior  # the re-fit lost its set, and the prediction fits more
 
 
 def _refine(
