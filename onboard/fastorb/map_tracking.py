@@ -61,11 +61,15 @@ class MapTracking:
         T, omega = refine_with_rate(fit.T_cw, xyz_W[inl], uv[inl], disp[inl], self.K,
                                     self.pnp.bf_px, self.pnp.huber_px, readout, self.size[1],
                                     xi, self.p.rolling_shutter_rate_sd)
+        xi_fit = np.concatenate([omega, xi[3:]])
+        again = solve_pnp(xyz_W, pixels_at_mid(uv, project(self.K, T, xyz_W)[1], self.K, xi_fit,
+                                               readout, self.size[1]),
+                          self.K, self.pnp, self.p.min_inliers, z, T)
+        if again is None or again.inliers.sum() < fit.inliers.sum():
+            self.rate = xi[:3].copy()  # a blurred frame's shear misleads: keep the first fit
+            return fit
         self.rate = omega
-        xi = np.concatenate([omega, xi[3:]])
-        return solve_pnp(xyz_W, pixels_at_mid(uv, project(self.K, T, xyz_W)[1], self.K, xi,
-                                              readout, self.size[1]),
-                         self.K, self.pnp, self.p.min_inliers, z, T)
+        return again
 
     def local_map(
         self,
