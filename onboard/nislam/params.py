@@ -22,6 +22,10 @@ class NislamParams:
     kernel_sigma: float = 0.2
     lam: float = 0.1
     label_sigma_cells: float = 1.0
+    # Sub-cell peak: centroid of the lobe above half height (false: a
+    # parabola through 3 samples per axis, biased on a non-Gaussian lobe;
+    # onboard/nislam/correlation.py, docs/nislam-error-budget.md)
+    peak_lobe_centroid: bool = True
     psr_exclude_cells: int = 5  # sidelobe excludes an 11x11 window around the peak
     psr_keyframe: float = 30.0  # T_r of Eq. 17
     psr_refine: float = 100.0  # refine the key only on confident matches (ref. §8: 100)

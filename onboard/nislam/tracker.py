@@ -266,7 +266,7 @@ class NislamTracker:
         radius_m = max(self.p.search_radius_m, self.p.search_speed_m_s * key.since_last_match_s(t_s))
         peak = find_peak(
             key.filt.response(whiten(img.gray, img.mask)), self.p.psr_exclude_cells, key.predicted_shift(t_s),
-            max(3, int(radius_m / key.img.res_m)),
+            max(3, int(radius_m / key.img.res_m)), self.p.peak_lobe_centroid,
         )
         if not peak.psr >= self.p.psr_lost:  # also catches NaN
             return None
