@@ -18,7 +18,7 @@ from scipy import ndimage
 
 _FFT_WORKERS = 1  # one core for the tracker: the loop, drivers and outputs share the rest
 # Half size of the window the lobe centroid looks in: on tum_fr1_rpy the lobe
-# above half height spans up to 10 cells from the peak (32 cells median, 102
+# above half height reaches up to ~10 cells from the peak (32 cells median, 102-138
 # max), elongated along the image flow; a lobe cut by the window is biased
 # toward the arg-max.
 _LOBE_HALF_CELLS = 12
