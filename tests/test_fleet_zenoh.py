@@ -23,7 +23,8 @@ from onboard.outputs.ground import GroundStation
 from onboard.outputs.mapcodec import map_digest
 from onboard.outputs.router import access_control, router_config, router_json
 from onboard.outputs.settings import RouterConfig, ZenohConfig
-from onboard.outputs.zenoh_out import ZenohOutput, _RateLimit
+from onboard.outputs.zenoh_messages import RateLimit
+from onboard.outputs.zenoh_out import ZenohOutput
 from onboard.outputs.zenoh_session import open_session, session_config
 
 WAIT_S = 30.0
@@ -163,12 +164,12 @@ class _NoKeys:
 
 
 def test_map_rate_limit_spreads_key_frames_over_time() -> None:
-    lim = _RateLimit(1000.0)  # 1 kB/s, a one-second allowance
+    lim = RateLimit(1000.0)  # 1 kB/s, a one-second allowance
     assert lim.delay_s(1000, now=0.0) == 0.0  # the allowance
     assert lim.delay_s(500, now=0.0) == pytest.approx(0.5)
     assert lim.delay_s(500, now=0.5) == pytest.approx(0.5)  # queued behind the last
     assert lim.delay_s(2000, now=10.0) == pytest.approx(1.0)  # after a quiet spell
-    assert _RateLimit(0.0).delay_s(10**9, now=0.0) == 0.0  # no limit
+    assert RateLimit(0.0).delay_s(10**9, now=0.0) == 0.0  # no limit
 
 
 # --------------------------------------------------------------------------- security

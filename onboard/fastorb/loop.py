@@ -45,8 +45,8 @@ from onboard.core.rotations import so3_log
 from onboard.core.se3 import camera_in_world, inverse, se3_log
 from onboard.fastorb.local_map import Keyframe, LocalMap
 from onboard.fastorb.mapping import Correction
-from onboard.fastorb.pose import PnpSettings
 from onboard.fastorb.place import KeyRecord, PlaceIndex, PlaceSettings, Verified, verify
+from onboard.fastorb.pose import PnpSettings
 from onboard.fastorb.posegraph import Edge, optimise, relative
 
 log = logging.getLogger(__name__)

@@ -42,16 +42,16 @@ from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Trac
 from onboard.core.rotations import so3_log
 from onboard.core.se3 import camera_in_world, inverse, make_pose
 from onboard.fastorb import kernels as fastorb_kernels
-from onboard.fastorb.features import Detector, Features, Outcome, Tracked, outcome_result
 from onboard.fastorb.bundle import BaSettings
+from onboard.fastorb.features import Detector, Outcome, Tracked, outcome_result
 from onboard.fastorb.local_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
 from onboard.fastorb.loop import LoopClosing, LoopSettings, PlaceSettings
+from onboard.fastorb.map_tracking import MapTracking
 from onboard.fastorb.mapping import LocalMapping, MappingSettings, corrected
 from onboard.fastorb.matching import (
     LkSettings,
     epipolar_inliers,
     gms_inliers,
-    match_by_projection,
     match_by_ratio,
     track_lk,
 )
@@ -91,6 +91,8 @@ class FastOrbTracker:
         ) if p.local_ba else None
         self.loops = LoopClosing(self._map, self.K, LoopSettings(place=PlaceSettings(
             depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure, pnp=self._pnp)
+        self._maptrack = MapTracking(p, self.K, self._size, self._detector, self._map, self._lk,
+                                     self._pnp)
         self.keyframe_pose = self.loops.pose_of  # a key frame's T_cw now (final trajectory)
         self._state = TrackState.INITIALIZING
         self._tracked = Tracked.empty()
@@ -155,13 +157,14 @@ class FastOrbTracker:
         self._frames_since_keyframe += 1
         self._frames_since_map += 1
         if self._frames_since_map >= self.p.map_track_every:  # step 5
-            moved = moved.extended(self._track_map_points(gray, prior, moved))
+            self._frames_since_map = 0
+            moved = moved.extended(self._maptrack.map_points(gray, prior, moved))
         outcome = self._pose(moved, prior, frame.depth_m)  # step 6
         n_in = 0 if outcome is None else outcome.inliers
         if n_in < self.p.local_map_min_inliers or self._keyframe_due(n_in):  # step 7
             guess = prior if outcome is None else outcome.T_cw
             kept = Tracked.empty() if outcome is None else outcome.tracked
-            found = self._track_local_map(frame, gray, guess, kept)
+            found = self._maptrack.local_map(frame, gray, guess, kept)
             if found is not None and self._plausible(found.T_cw, prior):
                 outcome = found
         if outcome is None:
@@ -197,7 +200,7 @@ class FastOrbTracker:
         """PnP + RANSAC and refinement on the followed points; None without a
         fit or when the pose jumps implausibly far from the prediction (e.g.
         tracks dragged along by motion blur)."""
-        pnp = self._solve(moved.xyz_W, moved.uv, depth_m)
+        pnp = self._maptrack.solve(moved.xyz_W, moved.uv, depth_m)
         if pnp is None or not self._plausible(pnp.T_cw, prior):
             log.debug("no pose from %d points: %s", len(moved),
                       "PnP failed" if pnp is None else "implausible jump")
@@ -243,86 +246,10 @@ class FastOrbTracker:
                                    self.p.epipolar_confidence)]
         return Tracked(uv[idx], trk.xyz_W[idx], trk.ids[idx])
 
-    def _solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray) -> PnpResult | None:
-        """PnP + RANSAC, then refinement against the landmarks
-        with this frame's depth at the tracked pixels (closer than
-        rgbd_max_depth_m) as disparity residuals."""
-        z = sample_depth(depth_m, uv, self.p.min_depth_m, self.p.rgbd_max_depth_m,
-                         self.p.depth_edge_rel) if len(uv) else np.zeros(0)
-        return solve_pnp(xyz_W, uv, self.K, self._pnp, self.p.min_inliers, z)
-
     def _seed(self, trk: Tracked, prior: np.ndarray) -> np.ndarray:
         """Eq. 16: predicted pixels; points behind the camera keep their old pixel."""
         uv, z = project(self.K, prior, trk.xyz_W)
         return np.where((z > 1e-3)[:, None], uv, trk.uv).astype(np.float32)
-
-    def _track_local_map(
-        self,
-        frame: RgbdFrame,
-        gray: np.ndarray,
-        guess: np.ndarray,
-        kept: Tracked,
-        feats: Features | None = None,
-    ) -> Outcome | None:
-        """Track against the local map: ORB with descriptors on this frame,
-        matched to the landmarks of the key frames nearest to the pose `guess`
-        (projected with it); PnP on those and the still-tracked points. A
-        tracked point that meets an older landmark takes it over, so drift
-        does not outlive the return to a mapped view."""
-        if feats is None:
-            feats = self._detector.detect(gray, with_descriptors=True)
-        found = self._match_map(feats, guess)
-        near = self._detector.pair_with(kept.uv, found.uv, 2.0)  # kept index per found point, -1: none
-        older = near >= 0
-        older[older] = found.ids[older] < kept.ids[near[older]]
-        kept = Tracked(kept.uv, kept.xyz_W.copy(), kept.ids.copy())
-        kept.xyz_W[near[older]] = found.xyz_W[older]
-        kept.ids[near[older]] = found.ids[older]
-        new = (near < 0) & ~np.isin(found.ids, kept.ids)
-        both = kept.extended(found.subset(new))
-        pnp = self._solve(both.xyz_W, both.uv, frame.depth_m)
-        if pnp is None:
-            return None
-        return Outcome(pnp.T_cw, both.subset(pnp.inliers), restricted(pnp), feats)
-
-    def _track_map_points(self, gray: np.ndarray, prior: np.ndarray, moved: Tracked) -> Tracked:
-        """Descriptor-free local-map tracking: landmarks of the key frames
-        nearest to the predicted pose that project into this frame away from
-        the followed points, followed by LK from their key frame's image,
-        starting at the projection. Landmarks that left the view and came
-        back are re-acquired with their old position, which holds drift back."""
-        self._frames_since_map = 0
-        mp = self._map.points_near(prior)
-        rows = np.flatnonzero((mp.kf < self.p.map_track_keyframes) & ~mp.has(moved.ids))
-        uv, z = project(self.K, prior, mp.xyz_W[rows])
-        w, h = self._size
-        m = 8  # keep the LK window and its pyramid footprint inside the image
-        view = ((z > self.p.min_depth_m) & (uv[:, 0] >= m) & (uv[:, 0] < w - m)
-                & (uv[:, 1] >= m) & (uv[:, 1] < h - m))
-        sel = np.flatnonzero(view)
-        sel = sel[self._detector.free(moved.uv, uv[sel])][: self.p.map_track_max]
-        kf = mp.kf[rows[sel]]
-        parts = []
-        for slot in np.unique(kf):
-            g = sel[kf == slot]
-            at, ok = track_lk(mp.keyframes[slot].gray, gray, mp.uv[rows[g]], uv[g], self._lk)
-            ok &= np.sum((at - uv[g]) ** 2, axis=1) <= self.p.map_track_radius_px**2
-            parts.append(Tracked(at[ok], mp.xyz_W[rows[g[ok]]], mp.ids[rows[g[ok]]]))
-        return Tracked.joined(parts)
-
-    def _match_map(self, feats: Features, guess: np.ndarray) -> Tracked:
-        """Keypoints matched to local-map landmarks by projection and descriptor."""
-        mp = self._map.points_near(guess)
-        uv_map, z_map = project(self.K, guess, mp.xyz_W)
-        w, h = self._size
-        view = np.flatnonzero((z_map > self.p.min_depth_m) & (uv_map[:, 0] >= 0)
-                              & (uv_map[:, 0] < w) & (uv_map[:, 1] >= 0) & (uv_map[:, 1] < h))
-        kp_i, map_i = match_by_projection(
-            feats.desc, feats.uv, mp.desc[view], uv_map[view], self.p.match_radius_px,
-            self.p.match_max_hamming,
-        )
-        map_i = view[map_i]
-        return Tracked(feats.uv[kp_i].astype(np.float32), mp.xyz_W[map_i], mp.ids[map_i])
 
     def _replenish(
         self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: Tracked
@@ -460,7 +387,7 @@ class FastOrbTracker:
             if pnp is None:
                 continue
             found = Tracked(feats.uv[q].astype(np.float32), kf.xyz_W[t], kf.ids[t])
-            outcome = self._track_local_map(frame, gray, pnp.T_cw, found.subset(pnp.inliers),
+            outcome = self._maptrack.local_map(frame, gray, pnp.T_cw, found.subset(pnp.inliers),
                                             feats)
             if outcome is None or outcome.inliers < self.p.reloc_min_inliers:
                 continue

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +44,7 @@ from onboard.nislam.projection import (
     make_cloud,
     project,
 )
+from onboard.nislam.results import lost_result, pose_variance, quality_from_psr, restart_result
 from onboard.nislam.shutter import rolling_shutter_cloud
 
 log = logging.getLogger(__name__)
@@ -200,7 +200,7 @@ class NislamTracker:
             p_W_m=outcome.p_W_m,
             R_W_C=r_cur,
             pose_var=with_attitude_var(outcome.pose_var, key.R_W_C, att_var),
-            quality=self._quality(peak.psr),
+            quality=quality_from_psr(peak.psr, self.p.psr_lost, self.p.psr_refine),
             psr=peak.psr,
             keyframe_id=key_id,
             new_keyframe=new_key,
@@ -292,7 +292,7 @@ class NislamTracker:
         s = key.img.res_m
         t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
         p_W = key.p_W_m + key.R_W_C @ t_inc
-        pose_var = self._pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
+        pose_var = pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
         return _Match(p_W, peak, depth, theta_img, pose_var)
 
     def _reuse(
@@ -377,29 +377,8 @@ class NislamTracker:
         self._prev = _Prev(t_g, cloud, r_g, None, p_W, np.zeros(3))
         finished = self._new_key_from(self._prev)
         self._last_trusted_p = p_W
-        return TrackResult(
-            t_s=t_s,
-            state=TrackState.TRACKING,
-            trusted=True,
-            p_W_m=p_W,
-            R_W_C=r_cur,
-            pose_var=np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4]),
-            quality=50,
-            psr=float("nan"),
-            keyframe_id=self._key.keyframe_id,
-            new_keyframe=True,
-            reset_counter=self._reset_counter,
-            lost_reason=None,
-            shift_cells=(0.0, 0.0),
-            tz_m=0.0,
-            res_m=self._key.img.res_m,
-            rotation_residual_rad=np.zeros(3),
-            attitude_offset_s=self._calib.offset_s,
-            matched_cells=0,
-            finished_keyframes=tuple(finished),
-            reference_keyframe_id=self._key.keyframe_id,
-            reference_offset_m=np.zeros(3),
-        )
+        return restart_result(t_s, p_W, r_cur, self._key, self._reset_counter,
+                              self._calib.offset_s, tuple(finished))
 
     def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
@@ -455,44 +434,5 @@ class NislamTracker:
         key (self._lost); a frame without attitude or depth is skipped and the
         next one is matched against the same key, its search window widened
         by the time passed (`max_coast_s` bounds how long)."""
-        return TrackResult(
-            t_s=t_s,
-            state=TrackState.LOST if self._key is not None else TrackState.INITIALIZING,
-            trusted=False,
-            p_W_m=None,
-            R_W_C=None,
-            pose_var=np.full(6, np.nan),
-            quality=0,
-            psr=float("nan"),
-            keyframe_id=-1 if self._key is None else self._key.keyframe_id,
-            new_keyframe=False,
-            reset_counter=self._reset_counter,
-            lost_reason=reason,
-            shift_cells=(0.0, 0.0),
-            tz_m=0.0,
-            res_m=0.0 if self._key is None else self._key.img.res_m,
-            rotation_residual_rad=np.zeros(3),
-            attitude_offset_s=self._calib.offset_s,
-            matched_cells=0,
-            finished_keyframes=finished,
-        )
-
-    def _quality(self, psr: float) -> int:
-        span = max(self.p.psr_refine - self.p.psr_lost, 1e-6)
-        return int(np.clip(round(100.0 * (psr - self.p.psr_lost) / span), 1, 100))
-
-    def _pose_variance(
-        self, peak: Peak, res_m: float, var_z_m2: float, r_W_key: np.ndarray
-    ) -> np.ndarray:
-        """Position variances in the world frame, attitude variances (ref. §10).
-
-        In key axes: lateral from the response treated as an isotropic 2-D
-        Gaussian (s^2 * volume / (2 pi peak)), floored at a tenth of a cell;
-        depth from the scatter of the matched depth differences, floored at
-        5 mm. The diagonal is carried into the world frame (diag of R S R^T).
-        """
-        vol = max(peak.response_sum, 0.0)
-        var_xy = res_m**2 * max(vol / (2.0 * math.pi * max(peak.value, 1e-9)), 0.01)
-        var_key = np.array([var_xy, var_xy, max(var_z_m2, 0.005**2)])
-        rot = 2.0 * 4.592449e-6  # authors' fixed attitude variance (rad^2)
-        return np.concatenate([(r_W_key * r_W_key) @ var_key, [rot, rot, rot]])
+        return lost_result(t_s, reason, self._key, self._reset_counter, self._calib.offset_s,
+                           finished)

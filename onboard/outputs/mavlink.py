@@ -15,16 +15,13 @@ every `reconnect_s`: the loop never waits on a socket or a serial port.
 Errors are counted and logged once per spell. A link shared with the
 autopilot attitude source (drivers.fc_link.FcLink) is passed as `link`.
 
-pymavlink picks MAVLink 1 or 2 when it is first imported, from the
-environment variable MAVLINK20; with MAVLink 1 ODOMETRY does not exist. This
-module imports pymavlink only inside `load_mavutil()`, which sets
-MAVLINK20=1 first, so importing onboard.outputs.mavlink has no side effect.
+pymavlink is imported only inside `load_mavutil()` (mavutil_loader.py), so
+importing onboard.outputs.mavlink has no side effect.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import deque
@@ -53,6 +50,7 @@ from onboard.outputs.mavlink_origin import OriginHandshake, ResetCounterStore, s
 from onboard.outputs.mavlink_signing import enable_signing, load_signing_key
 from onboard.outputs.mavlink_stats import MavlinkStats, SharedLink
 from onboard.outputs.mavlink_timesync import PACKET_BYTES, TimesyncClock
+from onboard.outputs.mavutil_loader import load_mavutil
 from onboard.outputs.settings import MavlinkConfig
 from onboard.outputs.wake import Wake
 
@@ -60,23 +58,6 @@ log = logging.getLogger(__name__)
 
 RX_POLL_S = 0.002  # how often our own link is read: TIMESYNC answers within ~2 ms
 ANSWER_WAIT_S = 0.02  # the sender reads at once for an answer to our TIMESYNC this long
-
-
-def load_mavutil() -> Any:
-    """pymavlink's mavutil with the MAVLink 2 messages.
-
-    mavutil loads the MAVLink 2 dialect when MAVLINK20 is set (to anything)
-    at its first import, so the variable is set here, right before that
-    import. Something that imported pymavlink earlier without it got
-    MAVLink 1, which is refused here rather than failing at the first send.
-    """
-    os.environ.setdefault("MAVLINK20", "1")
-    from pymavlink import mavutil
-
-    if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
-        raise NislamError("pymavlink was loaded with MAVLink 1 (MAVLINK20 unset or 0 at its "
-                          "first import); ODOMETRY needs MAVLink 2")
-    return mavutil
 
 
 # --------------------------------------------------------------------------- sender

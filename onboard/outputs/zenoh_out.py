@@ -77,14 +77,14 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
-from scipy.spatial.transform import Rotation
 
-from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult, TrackState
+from onboard.core.messages import HealthReport, KeyframeCloud, TrackResult
 from onboard.outputs.mapcodec import ENCODING as KEYFRAME_ENCODING
 from onboard.outputs.mapcodec import KeyframeMove, MapKeyframe, encode_keyframe, map_digest
 from onboard.outputs.settings import ZenohConfig
 from onboard.outputs.wake import Wake
 from onboard.outputs.zenoh_link import ZenohLink
+from onboard.outputs.zenoh_messages import RateLimit, finite_or_none, pose_message, tracking_quality
 from onboard.outputs.zenoh_session import (
     Worker,
     key_prefix,
@@ -96,55 +96,6 @@ from onboard.outputs.zenoh_session import (
 __all__ = ["ZenohOutput", "key_prefix", "open_session", "pose_message", "session_config"]
 
 log = logging.getLogger(__name__)
-
-
-def tracking_quality(result: TrackResult) -> int:
-    """-1 lost, 0 starting, 1-100 tracking (ODOMETRY's convention)."""
-    if result.trusted:
-        return int(min(100, max(1, result.quality)))
-    return -1 if result.state is TrackState.LOST else 0
-
-
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
-def pose_message(result: TrackResult, seq: int) -> dict[str, Any]:
-    """The JSON object published on `pose` for one result."""
-    trusted = result.trusted and result.p_W_m is not None and result.R_W_C is not None
-    q = Rotation.from_matrix(result.R_W_C).as_quat(canonical=True) if trusted else None
-    return {
-        "seq": seq,
-        "t_s": float(result.t_s),
-        "state": result.state.value,
-        "trusted": trusted,
-        "p_W_m": [float(v) for v in result.p_W_m] if trusted else None,
-        "q_W_C_xyzw": [float(v) for v in q] if q is not None else None,
-        "pose_var": [_num(v) for v in result.pose_var] if trusted else None,
-        "quality": tracking_quality(result),
-        "psr": _num(result.psr),
-        "keyframe_id": int(result.keyframe_id),
-        "reset_counter": int(result.reset_counter),
-        "lost_reason": result.lost_reason,
-    }
-
-
-class _RateLimit:
-    """Average rate limit with a one-second allowance: `delay_s(n)` is how long
-    to wait before sending n bytes (0 without a limit)."""
-
-    def __init__(self, bytes_per_s: float, burst_s: float = 1.0) -> None:
-        self.rate = bytes_per_s
-        self.burst_s = burst_s
-        self._next_free = -math.inf
-
-    def delay_s(self, n_bytes: int, now: float) -> float:
-        if self.rate <= 0:
-            return 0.0
-        # Virtual finish time of everything sent: after a quiet spell it may
-        # lag `now` by burst_s, so up to burst_s x rate bytes go at once.
-        self._next_free = max(self._next_free, now - self.burst_s) + n_bytes / self.rate
-        return max(0.0, self._next_free - now)
 
 
 class _Entities:
@@ -242,7 +193,7 @@ class ZenohOutput:
         self._map_bytes = 0
         self._map_points = 0
         self._evicted = 0  # key frames forgotten because of map_max_mb
-        self._rate = _RateLimit(cfg.map_rate_kb_s * 1e3)
+        self._rate = RateLimit(cfg.map_rate_kb_s * 1e3)
         self._bytes = {"pose": 0, "status": 0, "map": 0}  # payload bytes put
         self._start = clock()
         self._seq = 0
@@ -418,7 +369,7 @@ class ZenohOutput:
             "lost_reason": None if last is None else last.lost_reason,
             "frame_hz": p["frames"] / span,
             "pose_hz": p["tracked"] / span,
-            "psr": None if last is None else _num(last.psr),
+            "psr": None if last is None else finite_or_none(last.psr),
             "psr_mean": p["psr_sum"] / p["psr_n"] if p["psr_n"] else None,
             "resets": 0 if last is None else int(last.reset_counter),
             # the fused tracker: which trackers the pose used, why others were left out
