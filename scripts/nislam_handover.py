@@ -145,15 +145,6 @@ def main() -> int:
         print(f"  {kind:5s} x {m.sum():2d}: jump {_rms(jn):.2f} RMS (median {np.median(jn) * 1e3:.2f}, max "
               f"{jn.max() * 1e3:.1f}); keys' own position {_rms(np.linalg.norm(key_err[m], axis=1)):.2f}, "
               f"measurement against the keys {_rms(np.linalg.norm(meas_err[m], axis=1)):.2f} mm RMS")
-    key_t = {r.keyframe_id: r.t_s for r, _, _ in rows if r.new_keyframe}
-    key_t[rows[0][0].keyframe_id] = rows[0][0].t_s
-    edges = getattr(tr, "_h_edges", [])
-    for kind in ("weak", "prev"):
-        e = [np.linalg.norm(d - (pos(np.array([key_t[j]]))[0] - pos(np.array([key_t[i]]))[0]))
-             for ts, i, j, k, d, _ in edges if k == kind and i in key_t and j in key_t]
-        if e:
-            print(f"  re-use offsets measured on the {kind} frame: {len(e)}, error {_rms(np.array(e)):.2f} mm RMS"
-                  f" (median {np.median(e) * 1e3:.2f})")
     kp = rows[-1][2]
     ke = np.array([p - (pos(np.array([tk]))[0] - g0) for tk, p in kp.values()])
     print(f"keys held at the end: {len(kp)}, position error {_rms(np.linalg.norm(ke, axis=1)):.1f} mm RMS")
