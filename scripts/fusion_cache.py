@@ -4,6 +4,7 @@ keep its per-frame TrackResults, then replay the fusion alone on them
 
     python scripts/fusion_cache.py record SEQ CACHE.pkl [--set section.key=value ...]
     python scripts/fusion_cache.py fuse CACHE.pkl [CACHE2.pkl ...] [--set fusion.key=value ...]
+    python scripts/fusion_cache.py why CACHE.pkl [...] [--set ...]   (why the coverage is off)
 
 `record` runs NI-SLAM and FastORB separately on every frame of SEQ (the fused
 tracker runs them independently too, so their results are the same) with the
@@ -11,7 +12,12 @@ replay's attitude source, and pickles the results (key-frame clouds dropped),
 the attitude and the ground truth. `fuse` runs onboard.fusion.fused on each
 cache and prints ATE, per-frame RPE (lags 1/3/10/30 frames), path ratio,
 sigma-1 coverage, posed share and resets, with the trackers alone for
-reference (each scored the same way).
+reference (each scored the same way). `why` says where the covariance is
+off: per axis the fused coverage and rms error against rms sd, and per
+tracker each measurement's error against the truth (the filter's clones
+shadowed with the ground-truth position of the frame they were made at), split
+into the part shared by every frame on one anchor (the key's) and the rest,
+each against what the model puts there (the clone's widening, R).
 """
 
 from __future__ import annotations
@@ -27,9 +33,10 @@ import numpy as np
 
 from onboard.app.bench import attitude_error_model
 from onboard.app.config import load_config
-from onboard.app.replay import TrackLog, evaluate_track
+from onboard.app.replay import TrackLog, evaluate_track, with_stated_ahrs
 from onboard.core.evaluation import ground_truth_at
 from onboard.fusion.coverage import sigma1_coverage
+from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.fused import FusedTracker
 from onboard.fusion.params import FusionParams
 from onboard.fusion.registry import make_tracker
@@ -47,6 +54,7 @@ def record(seq_dir: str, out: str, sets: list[str]) -> None:
     cfg = load_config(None, _overrides(sets))
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
     attitude, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s)
+    cfg = with_stated_ahrs(cfg, seq_dir)
     frames = list(seq.frames())
     results: dict[str, list] = {}
     for name in TRACKERS:
@@ -112,6 +120,90 @@ def fuse(cache: dict, params: FusionParams) -> tuple[list, dict, float]:
     return out, fused.stats(), ms
 
 
+class _TruthFilter(AnchoredFilter):
+    """The filter, its clones shadowed with the ground truth: each update's
+    measurement error against the true motion since the clone's frame."""
+
+    def __init__(self, base: AnchoredFilter, p_true: np.ndarray) -> None:
+        super().__init__((base.n - 6) // 3, 0.0)
+        self.q, self.p_true, self.k = base.q, p_true, 0
+        self.truth: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+        self.log: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, int]] = []
+        self._ids = iter(range(1 << 30))
+
+    def _mark(self, i: int, p: np.ndarray, W: np.ndarray) -> None:
+        self.truth[i] = (p, W, next(self._ids))
+
+    def start(self, t_s, p, var_p, speed_sd):  # type: ignore[no-untyped-def]
+        super().start(t_s, p, var_p, speed_sd)
+        for i in range((self.n - 6) // 3):
+            self._mark(i, self.p_true[self.k], np.zeros((3, 3)))
+
+    def anchor(self, i: int) -> None:
+        super().anchor(i)
+        self._mark(i, self.p_true[self.k], np.zeros((3, 3)))
+
+    def copy(self, src: int, dst: int) -> None:
+        super().copy(src, dst)
+        self._mark(dst, *self.truth[src][:2])
+
+    def widen(self, i: int, Q: np.ndarray) -> None:
+        super().widen(i, Q)
+        p, W, c = self.truth[i]
+        self.truth[i] = (p, W + Q, c)
+
+    def update(self, i: int, z: np.ndarray, R: np.ndarray) -> None:
+        p, W, c = self.truth[i]
+        self.log.append((i, z - (self.p_true[self.k] - p), R.copy(), W.copy(), c))
+        super().update(i, z, R)
+
+
+def why(cache: dict, params: FusionParams, name: str) -> None:
+    """Print where the covariance is off (module doc)."""
+    t = np.asarray(cache["t_s"])
+    g, valid = ground_truth_at(t, cache["groundtruth"], 0.1)
+    p_true = np.full((len(t), 3), np.nan)
+    p_true[valid] = g.p_xyz_m
+    trackers = [_Cached(n, cache["results"][n]) for n in TRACKERS]
+    fused = FusedTracker(trackers, params)  # type: ignore[arg-type]
+    f = fused.filter = _TruthFilter(fused.filter, p_true)
+    out = []
+    for k, ts in enumerate(t):
+        f.k = k
+        out.append(fused.track(_Frame(ts), cache["attitude"]))  # type: ignore[arg-type]
+    log = TrackLog()
+    for r in out:
+        if r.trusted:
+            log.add_pose(r)
+    est = log.trajectory()
+    gg, ok = ground_truth_at(est.t_s, cache["groundtruth"], 0.1)
+    e = (est.p_xyz_m[ok] - est.p_xyz_m[ok][0]) - (gg.p_xyz_m - gg.p_xyz_m[0])
+    var = np.asarray(log.var_p_m2).reshape(-1, 3)[ok]
+    cov = np.mean(np.abs(e) <= np.sqrt(var), axis=0)
+    print(f"{name}: fused coverage x/y/z {' '.join(f'{100 * c:.0f}' for c in cov)} %, rms error "
+          f"{' '.join(f'{v:.1f}' for v in 1e3 * np.sqrt(np.mean(e**2, 0)))} mm against rms sd "
+          f"{' '.join(f'{v:.1f}' for v in 1e3 * np.sqrt(np.mean(var, 0)))} mm")
+    owner = {s: link.name for link in fused.links for s in (2 * link.index, 2 * link.index + 1)}
+    for link in fused.links:
+        rows = [row for row in f.log if owner.get(row[0], fused.links[0].name) == link.name]
+        rows = [row for row in rows if np.all(np.isfinite(row[1]))]
+        if not rows:
+            continue
+        groups: dict[int, list] = {}
+        for row in rows:
+            groups.setdefault(row[4], []).append(row)
+        shared = np.array([np.mean([r[1] for r in g_], axis=0) for g_ in groups.values()])
+        rest = np.concatenate([np.array([r[1] for r in g_]) - np.mean([r[1] for r in g_], axis=0)
+                               for g_ in groups.values()])
+        R = np.array([np.diag(r[2]) for r in rows])
+        W = np.array([np.diag(g_[0][3]) for g_ in groups.values()])
+        inside = np.mean([np.all(np.abs(r[1]) <= np.sqrt(np.diag(r[2] + r[3]))) for r in rows])
+        print(f"  {link.name}: {len(rows)} measurements on {len(groups)} anchors; shared "
+              f"{1e3 * np.sqrt(np.mean(shared**2)):.1f} mm (model {1e3 * np.sqrt(np.mean(W)):.1f}), rest "
+              f"{1e3 * np.sqrt(np.mean(rest**2)):.1f} mm (model {1e3 * np.sqrt(np.mean(R)):.1f}); "
+              f"all three axes within 1 sd {100 * inside:.0f} %")
+
+
 def _line(label: str, s: dict) -> str:
     def mm(v: float | None) -> str:
         return "   -  " if v is None else f"{v * 1e3:6.1f}"
@@ -133,6 +225,9 @@ def main() -> None:
     f.add_argument("caches", nargs="+")
     f.add_argument("--set", action="append", default=[])
     f.add_argument("--alone", action="store_true", help="also score each tracker alone")
+    w = sub.add_parser("why")
+    w.add_argument("caches", nargs="+")
+    w.add_argument("--set", action="append", default=[])
     a = ap.parse_args()
     if a.cmd == "record":
         record(a.seq, a.out, a.set)
@@ -144,6 +239,9 @@ def main() -> None:
         with open(path, "rb") as fh:
             cache = pickle.load(fh)
         name = Path(path).stem
+        if a.cmd == "why":
+            why(cache, params, name)
+            continue
         if a.alone:
             for n in TRACKERS:
                 print(_line(f"{name} {n}", score(cache["results"][n], cache["groundtruth"])))

@@ -9,9 +9,11 @@ has no `attitude.txt`, and the error model makes it look like a real AHRS.
 from __future__ import annotations
 
 import bisect
+import json
 import logging
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -206,3 +208,20 @@ def attitude_for_replay(
     if len(measured) == 0:
         raise NislamError(f"{seq.path}: {source} gives no attitude sample at any frame time")
     return AttitudeSeries(measured, max_gap_s), f"{source}; {model.describe()}"
+
+
+def stated_noise_deg(seq_dir: Path | str) -> float | None:
+    """The white attitude noise [deg per axis] a simulated flight's AHRS was
+    given (its sim.json, `nislam sim --ahrs-profile`); None for a recording
+    that does not state it (a real one). The replay tells NI-SLAM this
+    instead of the configured default (`[nislam] attitude_sd_deg`, a
+    myAHRS+'s 0.1 deg), so its covariance says what the flight's AHRS does:
+    with an exact attitude the default over-states NI-SLAM's error ~5x and
+    the fusion leans on FastORB for nothing (docs/fusion.md, "Coverage")."""
+    path = Path(seq_dir) / "sim.json"
+    try:
+        errors = json.loads(path.read_text())["options"]["ahrs"]["errors"]
+        noise = float(errors["noise_deg"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return noise if math.isfinite(noise) and noise >= 0.0 else None

@@ -142,6 +142,24 @@ def test_bench_json_is_one_object(fixture_seq: Path) -> None:
     assert stats["frame_ms_median"] <= stats["frame_ms_p95"] <= stats["frame_ms_max"]
 
 
+def test_bench_times_fastorbs_back_end_apart(fixture_seq: Path) -> None:
+    """FastORB's loop closing runs after the frames (backend_step): the bench
+    times each key frame's query there, apart from tracking, one per key
+    frame, and prints it; --no-loop-closure leaves none."""
+    proc = nislam("bench", str(fixture_seq), "--tracker", "fastorb", "--json")
+    assert proc.returncode == 0, proc.stderr
+    stats = json.loads(proc.stdout)
+    assert stats["keyframe_frames"] >= 1
+    assert stats["loop_queries"] == stats["keyframe_frames"]
+    assert stats["backend_slices"] >= stats["loop_queries"]
+    assert 0.0 < stats["loop_query_ms_median"] <= stats["loop_query_ms_p95"]
+    text = nislam("bench", str(fixture_seq), "--tracker", "fastorb").stdout
+    assert "loop closing per key frame" in text
+    off = json.loads(nislam("bench", str(fixture_seq), "--tracker", "fastorb", "--json",
+                            "--no-loop-closure").stdout)
+    assert off["loop_queries"] == 0 and off["loop_query_ms_median"] is None
+
+
 def test_missing_sequence_is_one_line_exit_1(tmp_path: Path) -> None:
     proc = nislam("replay", str(tmp_path / "nope"), "--out", str(tmp_path / "out"))
     assert proc.returncode == 1

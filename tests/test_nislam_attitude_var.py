@@ -74,3 +74,16 @@ def test_noise_a_replay_adds_comes_in_quadrature():
     assert math.isclose(_make_nislam(INTR, cfg).p.attitude_sd_deg, math.hypot(0.1, 1.0))
     cfg.attitude.noise_deg = 0.0
     assert _make_nislam(INTR, cfg).p.attitude_sd_deg == 0.1
+
+
+def test_a_simulated_flight_tells_nislam_its_ahrs_noise(tmp_path) -> None:
+    import json
+
+    from onboard.app.config import load_config
+    from onboard.app.replay import with_stated_ahrs
+
+    cfg = load_config(None, {})
+    assert with_stated_ahrs(cfg, tmp_path) is cfg  # a real recording: the configured AHRS
+    (tmp_path / "sim.json").write_text(json.dumps({"options": {"ahrs": {"errors": {"noise_deg": 0.0}}}}))
+    assert with_stated_ahrs(cfg, tmp_path).nislam.attitude_sd_deg == 0.0  # an exact attitude
+    assert with_stated_ahrs(cfg, tmp_path).fusion == cfg.fusion

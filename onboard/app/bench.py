@@ -85,6 +85,8 @@ def bench(
     frame_ms: list[float] = []
     backend_ms: list[float] = []  # FastORB's back-end slices, run after a frame and timed apart
     job_ms: list[float] = []  # ... summed per key frame (one local BA)
+    loop_ms: list[float] = []  # loop closing: one key frame's query and check
+    correct_ms: list[float] = []  # ... and each correction (pose graph, map moved)
     results: list[TrackResult] = []
     # by kind: a frame that starts a key or re-uses a kept one does more work
     kind_ms: dict[str, list[float]] = {"keyframe": [], "reused": [], "plain": []}
@@ -116,9 +118,14 @@ def bench(
                 t0 = time.perf_counter()
                 if step():
                     backend_ms.append((time.perf_counter() - t0) * 1e3)
-        mapping = getattr(tracker, "mapping", None)
-        if mapping is not None:
-            job_ms.extend(mapping.stats.job_ms)
+        for part in [tracker, *(link.tracker for link in getattr(tracker, "links", ()))]:
+            mapping = getattr(part, "mapping", None)
+            if mapping is not None:
+                job_ms.extend(mapping.stats.job_ms)
+            loops = getattr(part, "loops", None)
+            if loops is not None:
+                loop_ms.extend(loops.stats.query_ms)
+                correct_ms.extend(loops.stats.correct_ms)
     by_kind: dict[str, Any] = {}
     for kind, ms in kind_ms.items():
         by_kind[f"{kind}_frames"] = len(ms) // repeat
@@ -137,20 +144,26 @@ def bench(
         **by_kind,
         "deferred_ms_median": float(np.median(deferred_ms)) if deferred_ms else None,
         "deferred_ms_p95": float(np.percentile(deferred_ms, 95)) if deferred_ms else None,
-        **backend_stats(backend_ms, job_ms),
+        **backend_stats(backend_ms, job_ms, loop_ms, correct_ms),
         "stages_ms": {k: stage_stats(v) for k, v in stages.items()},
         "parts_ms_median": {part: float(np.median(ms)) for part, ms in parts_ms.items()},
     }
 
 
-def backend_stats(slice_ms: list[float], job_ms: list[float]) -> dict[str, Any]:
-    """The back end's time apart from tracking (FastORB's local mapping): per
-    slice (one unit run after a frame) and per key frame (one local BA)."""
+def backend_stats(slice_ms: list[float], job_ms: list[float], loop_ms: list[float],
+                  correct_ms: list[float]) -> dict[str, Any]:
+    """The back end's time apart from tracking (FastORB's): per slice (one
+    unit run after a frame), per key frame of local mapping (one local BA),
+    per key frame of loop closing (place query and 3-D check) and per loop
+    correction (pose graph and map moved)."""
     def q(a: list[float], p: float) -> float | None:
-        return float(np.percentile(a, p)) if a else None
+        return float(np.percentile(a, p)) if len(a) else None
     return {"backend_slices": len(slice_ms), "backend_slice_ms_median": q(slice_ms, 50),
             "backend_slice_ms_p95": q(slice_ms, 95), "backend_keyframes": len(job_ms),
-            "backend_keyframe_ms_median": q(job_ms, 50), "backend_keyframe_ms_p95": q(job_ms, 95)}
+            "backend_keyframe_ms_median": q(job_ms, 50), "backend_keyframe_ms_p95": q(job_ms, 95),
+            "loop_queries": len(loop_ms), "loop_query_ms_median": q(loop_ms, 50),
+            "loop_query_ms_p95": q(loop_ms, 95), "loop_corrections": len(correct_ms),
+            "loop_correction_ms_median": q(correct_ms, 50)}
 
 
 def stage_stats(ms: list[float]) -> dict[str, float | int | None]:

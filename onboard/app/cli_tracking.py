@@ -135,12 +135,20 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print("median by part: " + ", ".join(
             f"{part} {ms:.2f} ms ({100.0 * ms / total:.0f} %)"
             for part, ms in stats["parts_ms_median"].items()))
-    if stats["backend_keyframes"]:
+    if stats["backend_slices"]:
         print(f"back end (after the frames, apart): {stats['backend_slices']} slices, median "
               f"{stats['backend_slice_ms_median']:.2f} ms, p95 {stats['backend_slice_ms_p95']:.2f}"
-              f" ms; per key frame ({stats['backend_keyframes']}) median "
+              " ms")
+    if stats["backend_keyframes"]:
+        print(f"  local BA per key frame ({stats['backend_keyframes']}): median "
               f"{stats['backend_keyframe_ms_median']:.1f} ms, p95 "
               f"{stats['backend_keyframe_ms_p95']:.1f} ms")
+    if stats["loop_queries"]:
+        fixed = (f"; {stats['loop_corrections']} corrections, median "
+                 f"{stats['loop_correction_ms_median']:.1f} ms" if stats["loop_corrections"] else "")
+        print(f"  loop closing per key frame ({stats['loop_queries']}): median "
+              f"{stats['loop_query_ms_median']:.1f} ms, p95 {stats['loop_query_ms_p95']:.1f} ms"
+              + fixed)
     return 0
 
 

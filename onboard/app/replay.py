@@ -8,6 +8,7 @@ else there is left alone.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 import os
@@ -37,7 +38,7 @@ from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.registry import make_tracker
 from onboard.outputs.plot import plot_trajectory
 from onboard.outputs.ply import write_ply
-from sim_replay.attitude import attitude_for_replay
+from sim_replay.attitude import attitude_for_replay, stated_noise_deg
 from sim_replay.tum import Sequence, open_sequence
 
 log = logging.getLogger(__name__)
@@ -173,6 +174,7 @@ def replay(
     attitude, attitude_label = attitude_for_replay(
         seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s
     )
+    cfg = with_stated_ahrs(cfg, seq.path)
     tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
     _make_out_dir(out_dir)  # before tracking: a bad --out should not cost a whole run
 
@@ -202,6 +204,17 @@ def replay(
     write_text_atomic(paths[METRICS_FILE], json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     written = {name: p for name, p in paths.items() if p.exists()}
     return ReplayResult(metrics, out_dir, written, plot_note)
+
+
+def with_stated_ahrs(cfg: Config, seq_dir: Path | str) -> Config:
+    """`cfg` with NI-SLAM told the attitude noise a simulated flight states
+    (sim_replay.attitude.stated_noise_deg); unchanged for a real recording."""
+    stated = stated_noise_deg(seq_dir)
+    if stated is None or stated == cfg.nislam.attitude_sd_deg:
+        return cfg
+    log.info("%s: the AHRS's noise as simulated, %g deg (not %g)", seq_dir, stated,
+             cfg.nislam.attitude_sd_deg)
+    return dataclasses.replace(cfg, nislam=dataclasses.replace(cfg.nislam, attitude_sd_deg=stated))
 
 
 def track_sequence(

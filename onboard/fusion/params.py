@@ -20,6 +20,9 @@ class FusionParams:
     # Gate: a tracker's motion whose squared Mahalanobis distance to the
     # prediction (3 dof) exceeds this is left out (12: chi-square 99.3 %).
     gate_chi2: float = 12.0
+    # The second tracker, against the state the first one updated: beyond this it is
+    # an outlier (gone wild before it reports lost), left out (the same 99.3 %).
+    outlier_chi2: float = 12.0
     key_clones: int = 24  # fused positions of a tracker's keys kept for it to come back to
     noise_adapt_gain: float = 0.02  # per frame both trackers measure: step of the covariance scale (fused._adapt)
     noise_scale_max: float = 100.0  # ... up to this many times their own figures
