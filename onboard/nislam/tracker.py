@@ -290,10 +290,16 @@ class NislamTracker:
         every = 1 if settling else self.p.calibrate_every_n_frames
         theta_img = np.zeros(3)
         if key.layers is not None and self._frame_count % every == 0:
-            theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), depth.tz_m, self.p)
-            if theta is not None:
-                theta_img = theta
-                self._calibrate(key, r_rel, attitude, t_att, theta)
+            # The residual fit (a sixth of a match) only when the estimate can
+            # use it: with the key's and the frame's rates alike (g ~ 0: a
+            # hover, a steady turn) it says nothing about time, and a frame's
+            # pose does not wait for a measurement that would be left out.
+            g = self._rate_difference(key, r_rel, attitude, t_att)
+            if g is not None and self._calib.informative(g[:2]):
+                theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), depth.tz_m, self.p)
+                if theta is not None:
+                    theta_img = theta
+                    self._calib.update(g[:2], theta[:2])
         if peak.psr > self.p.psr_refine:  # for the next frames: after the pose
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
@@ -357,18 +363,6 @@ class NislamTracker:
         self._map.use(cand)
         return cand, dataclasses.replace(o, p_W_m=cand.p_W_m + d_cand)
 
-    def _calibrate(
-        self,
-        key: Key,
-        r_rel: np.ndarray,
-        attitude: AttitudeSource,
-        t_att: float,
-        theta_rad: np.ndarray,
-    ) -> None:
-        g = self._rate_difference(key, r_rel, attitude, t_att)
-        if g is not None:
-            self._calib.update(g[:2], theta_rad[:2])
-
     def _rate_difference(
         self, key: Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
     ) -> np.ndarray | None:
@@ -410,7 +404,9 @@ class NislamTracker:
 
     def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
-        returns the replaced key's cloud for the map (`hand_over`)."""
+        returns the replaced key's cloud for the map (`hand_over`). A key made
+        inside track() (the first, a restart, a failed match) is matched at
+        once, but its colour only serves the map: gathered after the pose."""
         old = self._key
         finished = [] if old is None or not hand_over else [self._key_cloud(old)]
         p = self.p
@@ -419,7 +415,12 @@ class NislamTracker:
             self.intr.height / self.intr.width,
         )
         slot = self._store.take()
-        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True))
+        # hand_over is False only for the Eq. 17 key, made after the pose already.
+        colour_later = hand_over
+        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=not colour_later))
+        if colour_later:  # the same projection's colour: a third of the key's making
+            self._deferred.add(slot.bgr, lambda: np.copyto(slot.bgr, project(
+                prev.cloud, np.eye(3), self.shape, res, with_colour=True).bgr))
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
                                        slot.spectra)
         filt.train(whiten(img.gray, img.mask))
@@ -449,6 +450,7 @@ class NislamTracker:
         moved after the map consumer got it (same id: the newer one wins),
         and its slot is re-used for a later key."""
         self._deferred.run(key)
+        self._deferred.run(key.img.bgr)  # its colour, if gathered later
         return KeyframeCloud(
             key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C, key.img.res_m,
             np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr.copy(),
