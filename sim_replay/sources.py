@@ -49,10 +49,12 @@ TAIL_S = 0.2  # ... and this long after the last one
 # samples after the capture time are there too, as live. 33 ms is the OAK's
 # own figure: Luxonis measure 33 ms from the frame's timestamp (getTimestamp,
 # host clock) to the host for colour at 1080p 60 fps over USB 3 ("Optimizing
-# FPS & Latency", depthai docs; mono 400p alone: 7.5 ms). The flight setup
-# (640x400 colour at 30 fps, stereo depth aligned to it, a host Sync node that
-# releases the pair when the slower one is in) is not quicker. Not measured
-# on our device yet: replace it with `nislam run`'s `source` stage on one.
+# FPS & Latency", depthai docs; mono 400p alone: 7.5 ms). That timestamp is
+# the end of the exposure; drivers/oak.py stamps its middle, which adds half
+# the exposure. The flight setup (640x400 colour at 30 fps: fewer bytes, but
+# stereo depth aligned to it and a host Sync node that releases the pair when
+# the slower one is in) may be quicker or slower: not measured on our device
+# yet; replace it with `nislam run`'s `source` stage on one (docs/latency.md).
 FRAME_DELIVERY_S = 0.033
 
 

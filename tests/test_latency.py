@@ -83,6 +83,28 @@ def test_a_pose_written_after_a_periodic_flush_still_reaches_its_row(clock: Cloc
     assert len(rows) == 1 and float(rows[0]["written_ms"]) == pytest.approx(17.2, abs=1e-3)
 
 
+def test_cpu_time_is_the_loop_threads_own(clock: Clock, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A frame whose track() takes 12 ms of wall time but only 3 ms of the
+    thread's CPU (the machine's other jobs had the core the rest): run.json's
+    stages_cpu_ms says 3 ms for the tracker, the frame's CPU counts every
+    stage's, and the wall-time stages are unchanged."""
+    cpu = Clock(7.0)
+    monkeypatch.setattr(latency_mod.time, "thread_time", cpu)
+    t = LoopTiming()
+    t.frame_start(clock.t - 0.040)
+    for wall_ms, cpu_ms in [(1.0, 0.5), (12.0, 3.0), (0.2, 0.2), (0.5, 0.5), (2.0, 1.0)]:
+        clock.t += wall_ms / 1e3
+        cpu.t += cpu_ms / 1e3
+        t.lap()
+    t.frame_end(True, True)
+    fields = t.run_fields(frames_offered=1, resets=0, output_stats={})
+    assert fields["stages_cpu_ms"]["tracker"]["p50"] == pytest.approx(3.0, abs=0.05)
+    assert fields["stages_cpu_ms"]["loop_frame"]["max"] == pytest.approx(5.2)
+    assert fields["stages_ms"]["tracker"]["max"] == pytest.approx(12.0)
+    (loop,) = [line for line in t.summary_lines({}) if line.startswith("loop")]
+    assert "tracker p99 12.0" in loop and "tracker CPU p50 3.0, p99 3.0" in loop
+
+
 def test_minute_figures_and_the_verbose_line(clock: Clock) -> None:
     t = LoopTiming(minute_s=60.0)
     lines: list[str] = []

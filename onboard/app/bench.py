@@ -27,6 +27,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from onboard.app.allocator import keep_freed_memory
 from onboard.app.config import Config
 from onboard.app.loop_stats import percentiles_ms
 from onboard.core.camera import undistort_maps
@@ -75,6 +76,7 @@ def bench(
     """Per-frame `track()` times over the sequence, `repeat` passes with a
     fresh tracker each (so every pass includes the same key-frame work)."""
     pin_one_core()
+    keep_freed_memory()  # as the service runs it
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
     attitude, _label = attitude_for_replay(

@@ -75,6 +75,12 @@ class LoopTiming:
         self.written = MsHistogram()  # capture -> MAVLink written (sender thread)
         self.arrival = MsHistogram()  # written + one-way link time (TIMESYNC)
         self.frame_loop = MsHistogram()  # taken -> health reported (the loop's own time)
+        # The loop thread's CPU time in track() and in the whole frame: on a
+        # busy machine wall time also counts the time other jobs had the
+        # core; CPU time is what the frame itself cost.
+        self.tracker_cpu = MsHistogram()
+        self.frame_cpu = MsHistogram()
+        self._cpu: list[float] = []
         self.other: dict[str, MsHistogram] = {}  # output threads' stages (encode, send)
         self._other_lock = threading.Lock()
         self._recent = np.zeros(WINDOW)  # capture -> written (or done) of the last frames
@@ -114,10 +120,12 @@ class LoopTiming:
         now = time.monotonic()
         self._capture = self.capture_host_s(t_s)
         self._marks = [self._capture, now]
+        self._cpu = [time.thread_time()]
 
     def lap(self) -> None:
         """The end of the next stage of LOOP_STAGES (after "source")."""
         self._marks.append(time.monotonic())
+        self._cpu.append(time.thread_time())
 
     def frame_end(self, trusted: bool, good: bool) -> None:
         m = self._marks
@@ -130,6 +138,10 @@ class LoopTiming:
         self.done.add(done_ms)
         self._minute["done"].add(done_ms)
         self.frame_loop.add((now - m[1]) * 1e3)
+        c = self._cpu
+        if len(c) > 2:  # taken, attitude, tracker, ...
+            self.tracker_cpu.add(max(c[2] - c[1], 0.0) * 1e3)
+            self.frame_cpu.add(max(c[-1] - c[0], 0.0) * 1e3)
         if not self.written.n:  # no link: the status's recent figures are capture -> done
             self._push_recent(done_ms)
         self.frames += 1
@@ -253,6 +265,8 @@ class LoopTiming:
             "stages_ms": {**{k: percentiles(v) for k, v in self.stages.items()},
                           "loop_frame": percentiles(self.frame_loop),
                           **{k: percentiles(v) for k, v in sorted(other.items())}},
+            "stages_cpu_ms": {"tracker": percentiles(self.tracker_cpu),
+                              "loop_frame": percentiles(self.frame_cpu)},
             "latency_minutes": list(self.minutes),
             "timesync": ts,
             "delay_advice": delay_advice(self, ts, mav.get("timesync_replies", 0) > 0),
@@ -278,7 +292,8 @@ class LoopTiming:
         lines.append("loop        " + ", ".join(
             f"{k} {_ms(self.stages[k].percentile(50))}" for k in LOOP_STAGES)
             + f" (p50); tracker p99 {_ms(tr.percentile(99))}, frame p99 "
-            f"{_ms(self.frame_loop.percentile(99))}")
+            f"{_ms(self.frame_loop.percentile(99))}; tracker CPU p50 "
+            f"{_ms(self.tracker_cpu.percentile(50))}, p99 {_ms(self.tracker_cpu.percentile(99))}")
         return lines
 
     def flush_csv(self, final: bool = True) -> None:

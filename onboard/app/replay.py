@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from onboard import NislamError
+from onboard.app.allocator import keep_freed_memory
 from onboard.app.bench import attitude_error_model, frame_time_stats, pin_one_core
 from onboard.app.config import Config, config_to_toml
 from onboard.app.keyframe_anchors import KeyframeAnchors
@@ -168,6 +169,7 @@ def replay(
     if max_frames is not None and max_frames < 1:
         raise NislamError(f"max_frames must be >= 1, got {max_frames}")
     pin_one_core()
+    keep_freed_memory()
     out_dir = Path(out_dir)
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from onboard.app.allocator import keep_freed_memory
 from onboard.app.bench import pin_one_core
 from onboard.app.config import Config, config_to_toml
 from onboard.app.health import HealthMonitor, HealthThresholds
@@ -135,6 +136,7 @@ class Service:
 
     def run(self) -> RunResult:
         pin_one_core()
+        keep_freed_memory()  # no page faults per frame (onboard/app/allocator.py)
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)

@@ -108,9 +108,16 @@ class OffsetCalibration:
     den: float = 0.0
     n: int = 0
 
+    MIN_G2 = 0.05  # |g|^2 [rad^2/s^2]: below ~13 deg/s the residual says nothing about time
+
+    def informative(self, g_rad_s: np.ndarray) -> bool:
+        """Whether `update` would use a frame with rate difference `g_rad_s`
+        (a caller need not measure the residual when not)."""
+        return float(g_rad_s @ g_rad_s) >= self.MIN_G2
+
     def update(self, g_rad_s: np.ndarray, theta_rad: np.ndarray) -> None:
         g2 = float(g_rad_s @ g_rad_s)
-        if g2 < 0.05:  # below ~13 deg/s the residual says nothing about time
+        if g2 < self.MIN_G2:
             return
         self.num = self.forget * self.num + g2 * self.offset_s - float(g_rad_s @ theta_rad)
         self.den = self.forget * self.den + g2

@@ -34,7 +34,7 @@ from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body
 from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
 from onboard.nislam.deferred import Deferred
 from onboard.nislam.depth import DepthFit, depth_translation
-from onboard.nislam.keymap import KeyframeMap
+from onboard.nislam.keymap import KeyframeMap, Measured
 from onboard.nislam.keys import Key, KeyStore
 from onboard.nislam.params import NislamParams
 from onboard.nislam.projection import (
@@ -184,6 +184,10 @@ class NislamTracker:
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
         key_id = self._key.keyframe_id
+        n_link = self.p.link_every_n_frames
+        if n_link > 0 and not new_key and not reused and self._frame_count % n_link == 0:
+            self._deferred.add(None, lambda: self._link(key, outcome, cloud, t_g, r_g, attitude,
+                                                        t_att))
         if new_key:
             # The switching frame is posed against the old key, then becomes the
             # key with that pose (ref. "Per-frame order", step 6): made after
@@ -250,8 +254,11 @@ class NislamTracker:
     # ------------------------------------------------------------ matching
     def _match(
         self, key: Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
-        t_att: float,
+        t_att: float, link: bool = False,
     ) -> _Match | None:
+        """`link`: a second measurement of a frame already posed (a key link,
+        onboard.nislam.keymap): the key's motion prior, refinement and the
+        time-offset calibration are left as they are."""
         self._deferred.run(key)  # its refinement by an earlier match
         # The key's attitude is looked up again at the current offset estimate,
         # so key and frame share one clock while the offset settles.
@@ -275,25 +282,52 @@ class NislamTracker:
                                   (peak.du_cells - du, peak.dv_cells - dv))
         if depth is None:
             return None
+        if link:
+            return self._pose(key, peak, depth, np.zeros(3))
         self._frame_count += 1
         # Calibrate on every frame until the offset has settled, then sparsely.
         settling = self._calib.n < self.p.calibrate_settle_updates
         every = 1 if settling else self.p.calibrate_every_n_frames
         theta_img = np.zeros(3)
         if key.layers is not None and self._frame_count % every == 0:
-            theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), depth.tz_m, self.p)
-            if theta is not None:
-                theta_img = theta
-                self._calibrate(key, r_rel, attitude, t_att, theta)
+            # The residual fit (a sixth of a match) only when the estimate can
+            # use it: with the key's and the frame's rates alike (g ~ 0: a
+            # hover, a steady turn) it says nothing about time, and a frame's
+            # pose does not wait for a measurement that would be left out.
+            g = self._rate_difference(key, r_rel, attitude, t_att)
+            if g is not None and self._calib.informative(g[:2]):
+                theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), depth.tz_m, self.p)
+                if theta is not None:
+                    theta_img = theta
+                    self._calib.update(g[:2], theta[:2])
         if peak.psr > self.p.psr_refine:  # for the next frames: after the pose
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
+        return self._pose(key, peak, depth, theta_img)
+
+    @staticmethod
+    def _pose(key: Key, peak: Peak, depth: DepthFit, theta_img: np.ndarray) -> _Match:
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
         t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
         p_W = key.p_W_m + key.R_W_C @ t_inc
         pose_var = pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
         return _Match(p_W, peak, depth, theta_img, pose_var)
+
+    def _link(self, key: Key, outcome: _Match, cloud: Cloud, t_s: float, r_cur: np.ndarray,
+              attitude: AttitudeSource, t_att: float) -> None:
+        """The frame, firmly matched against `key`, matched against the kept
+        key most alike in view too (KeyframeMap.link): after the pose went out."""
+
+        def measure(other: Key) -> Measured | None:
+            kept, other.shifts = other.shifts, []  # its prior is stale: search it all
+            o = self._match(other, cloud, t_s, r_cur, attitude, t_att, link=True)
+            other.shifts = kept
+            return None if o is None else Measured(o.p_W_m, o.pose_var[:3], o.peak.psr)
+
+        self._map.link(key, Measured(outcome.p_W_m, outcome.pose_var[:3], outcome.peak.psr),
+                       r_cur, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
+                       self.p.psr_keyframe, measure)
 
     def _reuse(
         self, key: Key, outcome: _Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
@@ -328,18 +362,6 @@ class NislamTracker:
         self._key = cand
         self._map.use(cand)
         return cand, dataclasses.replace(o, p_W_m=cand.p_W_m + d_cand)
-
-    def _calibrate(
-        self,
-        key: Key,
-        r_rel: np.ndarray,
-        attitude: AttitudeSource,
-        t_att: float,
-        theta_rad: np.ndarray,
-    ) -> None:
-        g = self._rate_difference(key, r_rel, attitude, t_att)
-        if g is not None:
-            self._calib.update(g[:2], theta_rad[:2])
 
     def _rate_difference(
         self, key: Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
@@ -382,7 +404,9 @@ class NislamTracker:
 
     def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
-        returns the replaced key's cloud for the map (`hand_over`)."""
+        returns the replaced key's cloud for the map (`hand_over`). A key made
+        inside track() (the first, a restart, a failed match) is matched at
+        once, but its colour only serves the map: gathered after the pose."""
         old = self._key
         finished = [] if old is None or not hand_over else [self._key_cloud(old)]
         p = self.p
@@ -391,7 +415,12 @@ class NislamTracker:
             self.intr.height / self.intr.width,
         )
         slot = self._store.take()
-        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=True))
+        # hand_over is False only for the Eq. 17 key, made after the pose already.
+        colour_later = hand_over
+        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=not colour_later))
+        if colour_later:  # the same projection's colour: a third of the key's making
+            self._deferred.add(slot.bgr, lambda: np.copyto(slot.bgr, project(
+                prev.cloud, np.eye(3), self.shape, res, with_colour=True).bgr))
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
                                        slot.spectra)
         filt.train(whiten(img.gray, img.mask))
@@ -421,6 +450,7 @@ class NislamTracker:
         moved after the map consumer got it (same id: the newer one wins),
         and its slot is re-used for a later key."""
         self._deferred.run(key)
+        self._deferred.run(key.img.bgr)  # its colour, if gathered later
         return KeyframeCloud(
             key.keyframe_id, key.t_s, key.p_W_m.copy(), key.R_W_C, key.img.res_m,
             np.where(key.count > 0, key.depth_ref, 0.0), key.gray_ref.copy(), key.img.bgr.copy(),
