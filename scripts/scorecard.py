@@ -4,7 +4,7 @@ myAHRS+ attitude, as one markdown table of ATE, frame-lag RPE, path ratio,
 tracked share and resets.
 
     .venv/bin/python scripts/scorecard.py --work /tmp/scorecard [--jobs 2]
-        [--trackers nislam fastorb fused] [--flights circle figure8 ...]
+        [--trackers nislam fastorb fused] [--flights circle figure8 ...] [--config C.toml]
 
 Flights are rendered once into --work (`nislam sim NAME --seconds 20 --seed 7`)
 and reused; each replay writes its folder there too. Errors and counts do not
@@ -67,6 +67,7 @@ def main() -> int:
     ap.add_argument("--trackers", nargs="+", default=list(TRACKERS), choices=TRACKERS)
     ap.add_argument("--flights", nargs="+", default=list(FLIGHTS), choices=FLIGHTS)
     ap.add_argument("--no-tum", action="store_true", help="synthetic flights only")
+    ap.add_argument("--config", type=Path, help="a TOML config for every replay (a setting tried)")
     args = ap.parse_args()
 
     with ThreadPoolExecutor(args.jobs) as pool:
@@ -76,7 +77,8 @@ def main() -> int:
         if not args.no_tum:
             cases.append(("tum_fr1_rpy noise 1 deg", TUM, ["--attitude-noise-deg", "1", "--seed", "1"]))
         cases += [(label, fut.result(), []) for label, fut in seqs.items()]
-        jobs = [pool.submit(replay, args.work, seq, label.replace(" ", "_"), t, extra)
+        common = [] if args.config is None else ["--config", str(args.config)]
+        jobs = [pool.submit(replay, args.work, seq, label.replace(" ", "_"), t, extra + common)
                 for label, seq, extra in cases for t in args.trackers
                 if not (t == "fastorb" and "noise" in label)]  # FastORB reads no attitude
         results = [j.result() for j in jobs]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from onboard.nislam.keymap import KeyframeMap
+from onboard.nislam.keymap import KeyframeMap, Measured
 
 
 @dataclass
@@ -121,3 +121,61 @@ def test_candidates_by_view_and_place():
     found = m.candidates(R, p, exclude_id=0, max_angle_deg=25.0, max_dist_m=0.5, limit=5)
     assert [k.keyframe_id for k in found] == [2, 1]  # 2 deg off, then 17 deg off
     assert [k.keyframe_id for k in m.candidates(R, p, 2, 25.0, 0.5, 1)] == [0]
+
+
+def _linked_pair(err_m: float = 0.02):
+    """Key 0 at the origin, key 1 truly 0.2 m along x but placed `err_m`
+    further (the error of the weak match it was started from, which the
+    chain offset carries too)."""
+    m: KeyframeMap[Key] = KeyframeMap(capacity=8)
+    a, b = _key(0), _key(1, (0.2 + err_m, 0, 0))
+    m.use(a)
+    m.use(b)
+    m.add_offset(0, 1, np.array([0.2 + err_m, 0, 0]), VAR * 100)
+    return m, a, b
+
+
+def test_link_ties_the_current_key_to_the_kept_one_in_view():
+    """A frame truly at x = 0.25 m, measured firmly against key 1 (through
+    its misplaced position: 0.27 m) and against key 0 (0.25 m): the link's
+    offset (0.2 m) is firmer than the chain's and the keys end up 0.2 m
+    apart, each moved by half the 20 mm (the gauge keeps their mean). The
+    sign matters: an offset taken the wrong way round would put them 0.24 m
+    apart, or be refused as a look-alike."""
+    m, a, b = _linked_pair()
+    asked = []
+
+    def measure(other):
+        asked.append(other.keyframe_id)
+        return Measured(other.p_W_m + np.array([0.25, 0, 0]), VAR, 200.0)
+
+    R = np.eye(3)
+    got = m.link(b, Measured(np.array([0.27, 0, 0]), VAR, 300.0), R, 25.0, 0.5, 30.0, measure)
+    assert got is a and asked == [0]
+    assert b.p_W_m[0] - a.p_W_m[0] == pytest.approx(0.2, abs=1e-3)
+    assert a.p_W_m[0] == pytest.approx(0.01, abs=1e-3)  # mean kept: (0 + 0.22) / 2
+
+
+@pytest.mark.parametrize("psr, through_other_m", [(20.0, 0.25), (200.0, 0.12)])
+def test_link_refuses_a_weak_or_look_alike_second_match(psr, through_other_m):
+    """A second match below min_psr, or one that puts the keys 0.15 m
+    closer than they are (a look-alike peak, not drift), changes nothing."""
+    m, a, b = _linked_pair()
+
+    def measure(other):
+        return Measured(other.p_W_m + np.array([through_other_m, 0, 0]), VAR, psr)
+
+    got = m.link(b, Measured(np.array([0.27, 0, 0]), VAR, 300.0), np.eye(3), 25.0, 0.5, 30.0,
+                 measure)
+    assert got is None
+    np.testing.assert_array_equal(a.p_W_m, [0, 0, 0])
+    np.testing.assert_array_equal(b.p_W_m, [0.22, 0, 0])
+
+
+def test_link_needs_a_kept_key_in_view():
+    """Key 0 looks 60 deg away: not measured, nothing linked."""
+    m, a, b = _linked_pair()
+    a.R_W_C = Rotation.from_euler("y", 60.0, degrees=True).as_matrix()
+    got = m.link(b, Measured(np.array([0.27, 0, 0]), VAR, 300.0), np.eye(3), 25.0, 0.5, 30.0,
+                 lambda other: pytest.fail("a key out of view was measured"))
+    assert got is None

@@ -198,6 +198,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.reuse_max_angle_deg": Range(lo=0.0, hi=90.0),  # optical axes apart by 90 deg share no view
     "nislam.reuse_max_dist_m": NON_NEGATIVE,
     "nislam.reuse_reset_jump_m": NON_NEGATIVE,
+    "nislam.link_every_n_frames": NON_NEGATIVE,  # 0 = keys linked only at re-uses
     # thresholds
     "nislam.psr_keyframe": NON_NEGATIVE,
     "nislam.psr_refine": NON_NEGATIVE,

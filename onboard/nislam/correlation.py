@@ -14,8 +14,14 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.fft as sfft
+from scipy import ndimage
 
 _FFT_WORKERS = 1  # one core for the tracker: the loop, drivers and outputs share the rest
+# Half size of the window the lobe centroid looks in: on tum_fr1_rpy the lobe
+# above half height reaches up to ~10 cells from the peak (32 cells median, 102-138
+# max), elongated along the image flow; a lobe cut by the window is biased
+# toward the arg-max.
+_LOBE_HALF_CELLS = 12
 
 
 @dataclass(frozen=True)
@@ -126,11 +132,23 @@ def find_peak(
     exclude_half_cells: int,
     centre_cells: tuple[float, float] = (0.0, 0.0),
     radius_cells: int | None = None,
+    lobe_centroid: bool = False,
 ) -> Peak:
     """Arg-max refined to sub-cell by a parabola through the peak and its
-    circular neighbours on each axis; PSR (Eq. 16) over the sidelobe, i.e. all
-    cells outside a (2e+1)^2 window around the peak, so the peak's own skirt
-    does not deflate the ratio.
+    circular neighbours on each axis, or (`lobe_centroid`) by the centroid of
+    the peak's lobe above half its height; PSR (Eq. 16) over the sidelobe,
+    i.e. all cells outside a (2e+1)^2 window around the peak, so the peak's
+    own skirt does not deflate the ratio.
+
+    Eq. 15 takes the peak's whole cell. The parabola through three samples
+    is exact for a Gaussian lobe; on real images the lobe is neither
+    Gaussian nor narrow (tum_fr1_rpy: half height 2-3 cells from the peak,
+    log-linear skirts, stretched along the flow by motion blur and the
+    rolling shutter), and the three top samples differ by less than their
+    noise. The centroid of the connected lobe above half height is unbiased
+    for any lobe symmetric about the true shift, whatever its shape, and
+    averages ~30 cells instead of 3 (docs/nislam-error-budget.md, "The
+    correlation peak").
 
     With `radius_cells`, the arg-max is searched only within that many cells
     of `centre_cells` (du, dv): a motion prior that keeps a distant look-alike
@@ -146,13 +164,38 @@ def find_peak(
         i, j = divmod(int(np.argmax(response[np.ix_(rows, cols)])), len(cols))
         v, u = int(rows[i]), int(cols[j])
     r_max = float(response[v, u])
-    dv = _parabolic_offset(response[(v - 1) % h, u], r_max, response[(v + 1) % h, u])
-    du = _parabolic_offset(response[v, (u - 1) % w], r_max, response[v, (u + 1) % w])
+    centroid = _lobe_centroid(response, v, u, r_max) if lobe_centroid else None
+    if centroid is not None:
+        du, dv = centroid
+    else:
+        dv = _parabolic_offset(response[(v - 1) % h, u], r_max, response[(v + 1) % h, u])
+        du = _parabolic_offset(response[v, (u - 1) % w], r_max, response[v, (u + 1) % w])
     # Circular shift range is +-size/2 (reference-nislam.md, pitfalls).
     shift_v = v + dv if v <= h // 2 else v + dv - h
     shift_u = u + du if u <= w // 2 else u + du - w
     psr, total = _psr(response, v, u, r_max, exclude_half_cells)
     return Peak(float(shift_u), float(shift_v), r_max, psr, total)
+
+
+def _lobe_centroid(r: np.ndarray, v: int, u: int, r_max: float) -> tuple[float, float] | None:
+    """(du, dv) of the centroid of the connected region around (v, u) where
+    the response exceeds half the peak, each cell weighted by its height
+    above half (zero at the region's edge, so cells entering or leaving it
+    do not jump the centroid); None without a positive peak."""
+    if not r_max > 0.0:
+        return None
+    h, w = r.shape
+    e = min(_LOBE_HALF_CELLS, (min(h, w) - 1) // 2)
+    rows = np.arange(v - e, v + e + 1) % h
+    cols = np.arange(u - e, u + e + 1) % w
+    above = r[np.ix_(rows, cols)].astype(np.float64) - 0.5 * r_max
+    labels, _ = ndimage.label(above > 0.0)
+    weight = np.where(labels == labels[e, e], above, 0.0)
+    total = float(weight.sum())
+    if not total > 0.0:
+        return None
+    offsets = np.arange(-e, e + 1, dtype=np.float64)
+    return float(weight.sum(axis=0) @ offsets) / total, float(weight.sum(axis=1) @ offsets) / total
 
 
 def _parabolic_offset(left: float, centre: float, right: float) -> float:

@@ -16,7 +16,9 @@ such offsets is a linear least-squares problem (translation averaging with
 known rotations): one small solve, no iterations, in keeping with the
 method. Offsets measured more than once between the same two keys are merged
 into their information-weighted mean, so the graph stays bounded by the
-number of keys kept.
+number of keys kept. Such offsets are also measured between re-uses
+(`link`): every few frames a firm match is repeated against the kept key
+most alike in view, so the keys already agree when one is re-used.
 
 Pure: numpy in and out, no threads, no I/O. The keys are the tracker's own
 objects; the map only reads `keyframe_id`, `R_W_C` and reads and writes
@@ -50,6 +52,22 @@ K = TypeVar("K", bound=MapKey)
 # 0.0337 m, and worse from each of starts 1, 2, 3, 5 by 2-4 mm): the first
 # keys are made while the time-offset calibration is still settling.
 _PRIOR_VAR_M2 = 100.0
+
+# A link (see KeyframeMap.link) whose offset disagrees with the two keys'
+# positions by more than this is taken for a look-alike peak, not drift: the
+# kept keys of tum_fr1_rpy disagree with the chain by ~2 cm RMS (48 mm at
+# most), a wrong peak by the search window (10 cm and more).
+LINK_MAX_DISAGREEMENT_M = 0.1
+
+
+@dataclass(frozen=True)
+class Measured:
+    """A frame measured against a key: its world position through that key,
+    the per-axis variances (world axes) and the match's PSR."""
+
+    p_W_m: np.ndarray
+    var_W_m2: np.ndarray
+    psr: float
 
 
 @dataclass
@@ -119,6 +137,35 @@ class KeyframeMap(Generic[K]):
         else:
             o.info += info
             o.info_d += info * d_W_m
+
+    def link(
+        self, key: K, at_key: Measured, R_W_C: np.ndarray, max_angle_deg: float,
+        max_dist_m: float, min_psr: float, measure: Callable[[K], Measured | None],
+    ) -> K | None:
+        """Tie `key` to the kept key most alike in view of a frame firmly
+        matched against it (`at_key`): `measure(other)` matches the same
+        frame against that key. A firm second match (PSR >= `min_psr`) is an
+        offset between the two keys, as at a re-use, and the key positions are
+        solved again. Made while both keys are in view, the keys agree before
+        one is re-used (the re-use then moves the position by a fraction of
+        what it did, docs/nislam-error-budget.md), and the current key, made
+        from the weakest match of its predecessor (PSR < T_r, Eq. 17), is
+        measured against the other keys too, not only through that match.
+        Returns the key linked, or None."""
+        d_key = at_key.p_W_m - key.p_W_m
+        for other in self.candidates(R_W_C, at_key.p_W_m, key.keyframe_id, max_angle_deg,
+                                     max_dist_m, 1):
+            at_other = measure(other)
+            if at_other is None or not at_other.psr >= min_psr:
+                continue
+            d = d_key - (at_other.p_W_m - other.p_W_m)  # other - key, measured
+            if float(np.linalg.norm(d - (other.p_W_m - key.p_W_m))) > LINK_MAX_DISAGREEMENT_M:
+                continue
+            self.add_offset(key.keyframe_id, other.keyframe_id, d,
+                            at_key.var_W_m2 + at_other.var_W_m2)
+            self.solve()
+            return other
+        return None
 
     def solve(self) -> float:
         """Refine every key position from the offsets (weighted linear least

@@ -22,6 +22,10 @@ class NislamParams:
     kernel_sigma: float = 0.2
     lam: float = 0.1
     label_sigma_cells: float = 1.0
+    # Sub-cell peak: centroid of the lobe above half height (false: a
+    # parabola through 3 samples per axis, biased on a non-Gaussian lobe;
+    # onboard/nislam/correlation.py, docs/nislam-error-budget.md)
+    peak_lobe_centroid: bool = True
     psr_exclude_cells: int = 5  # sidelobe excludes an 11x11 window around the peak
     psr_keyframe: float = 30.0  # T_r of Eq. 17
     psr_refine: float = 100.0  # refine the key only on confident matches (ref. §8: 100)
@@ -37,6 +41,10 @@ class NislamParams:
     reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
     reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
     reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
+    # Every n-th firm match is also measured against the kept key most alike
+    # in view, after the pose went out, and the key positions solved again
+    # (KeyframeMap.link): the keys agree before one is re-used; 0 = only at re-uses.
+    link_every_n_frames: int = 5
     reuse_reset_jump_m: float = 0.05  # a re-use moving the position this much beyond what it may have flown: reset
     # Eq. 18 weighted by the inverse variance of each depth difference (sensor
     # noise sigma_rel z^2, at least the floor, plus the slope times the cell

@@ -34,7 +34,7 @@ from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body
 from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
 from onboard.nislam.deferred import Deferred
 from onboard.nislam.depth import DepthFit, depth_translation
-from onboard.nislam.keymap import KeyframeMap
+from onboard.nislam.keymap import KeyframeMap, Measured
 from onboard.nislam.keys import Key, KeyStore
 from onboard.nislam.params import NislamParams
 from onboard.nislam.projection import (
@@ -184,6 +184,10 @@ class NislamTracker:
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
         key_id = self._key.keyframe_id
+        n_link = self.p.link_every_n_frames
+        if n_link > 0 and not new_key and not reused and self._frame_count % n_link == 0:
+            self._deferred.add(None, lambda: self._link(key, outcome, cloud, t_g, r_g, attitude,
+                                                        t_att))
         if new_key:
             # The switching frame is posed against the old key, then becomes the
             # key with that pose (ref. "Per-frame order", step 6): made after
@@ -250,8 +254,11 @@ class NislamTracker:
     # ------------------------------------------------------------ matching
     def _match(
         self, key: Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
-        t_att: float,
+        t_att: float, link: bool = False,
     ) -> _Match | None:
+        """`link`: a second measurement of a frame already posed (a key link,
+        onboard.nislam.keymap): the key's motion prior, refinement and the
+        time-offset calibration are left as they are."""
         self._deferred.run(key)  # its refinement by an earlier match
         # The key's attitude is looked up again at the current offset estimate,
         # so key and frame share one clock while the offset settles.
@@ -266,7 +273,7 @@ class NislamTracker:
         radius_m = max(self.p.search_radius_m, self.p.search_speed_m_s * key.since_last_match_s(t_s))
         peak = find_peak(
             key.filt.response(whiten(img.gray, img.mask)), self.p.psr_exclude_cells, key.predicted_shift(t_s),
-            max(3, int(radius_m / key.img.res_m)),
+            max(3, int(radius_m / key.img.res_m)), self.p.peak_lobe_centroid,
         )
         if not peak.psr >= self.p.psr_lost:  # also catches NaN
             return None
@@ -275,6 +282,8 @@ class NislamTracker:
                                   (peak.du_cells - du, peak.dv_cells - dv))
         if depth is None:
             return None
+        if link:
+            return self._pose(key, peak, depth, np.zeros(3))
         self._frame_count += 1
         # Calibrate on every frame until the offset has settled, then sparsely.
         settling = self._calib.n < self.p.calibrate_settle_updates
@@ -294,12 +303,31 @@ class NislamTracker:
         if peak.psr > self.p.psr_refine:  # for the next frames: after the pose
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
+        return self._pose(key, peak, depth, theta_img)
+
+    @staticmethod
+    def _pose(key: Key, peak: Peak, depth: DepthFit, theta_img: np.ndarray) -> _Match:
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
         t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
         p_W = key.p_W_m + key.R_W_C @ t_inc
         pose_var = pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
         return _Match(p_W, peak, depth, theta_img, pose_var)
+
+    def _link(self, key: Key, outcome: _Match, cloud: Cloud, t_s: float, r_cur: np.ndarray,
+              attitude: AttitudeSource, t_att: float) -> None:
+        """The frame, firmly matched against `key`, matched against the kept
+        key most alike in view too (KeyframeMap.link): after the pose went out."""
+
+        def measure(other: Key) -> Measured | None:
+            kept, other.shifts = other.shifts, []  # its prior is stale: search it all
+            o = self._match(other, cloud, t_s, r_cur, attitude, t_att, link=True)
+            other.shifts = kept
+            return None if o is None else Measured(o.p_W_m, o.pose_var[:3], o.peak.psr)
+
+        self._map.link(key, Measured(outcome.p_W_m, outcome.pose_var[:3], outcome.peak.psr),
+                       r_cur, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
+                       self.p.psr_keyframe, measure)
 
     def _reuse(
         self, key: Key, outcome: _Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
