@@ -55,8 +55,9 @@ _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
 # Published TUM RGB-D colour intrinsics (vision.in.tum.de, "Intrinsic Camera Calibration").
 # The TUM sequences come from Kinect-class RGB-D cameras whose colour sensor
 # is a rolling shutter; 28 ms from the first row to the last is the readout
-# Kerl, Stueckler and Cremers used for such a camera (ICCV 2015, "Dense
-# Continuous-Time Tracking and Mapping with Rolling Shutter RGB-D Cameras").
+# Kerl, Stueckler and Cremers gave the simulated rolling-shutter RGB-D camera
+# of their benchmark (ICCV 2015, "Dense Continuous-Time Tracking and Mapping
+# with Rolling Shutter RGB-D Cameras"), not a value fitted to these sequences.
 _KINECT_READOUT_S = 0.028
 _TUM_CAMERAS: dict[int, CameraModel] = {
     1: CameraModel(517.3, 516.5, 318.6, 255.3, 640, 480, 5000.0,
