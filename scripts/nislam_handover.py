@@ -16,8 +16,6 @@ position subtracted as the tracker's world starts there).
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -26,23 +24,11 @@ from scipy.spatial.transform import Rotation, Slerp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from nislam_experiment import parser, rms_mm, setup  # noqa: E402
+
 from onboard.core.evaluation import evaluate, ground_truth_at  # noqa: E402
 from onboard.core.trajectory import Trajectory  # noqa: E402
-from onboard.nislam.params import NislamParams  # noqa: E402
 from onboard.nislam.tracker import NislamTracker  # noqa: E402
-from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay  # noqa: E402
-from sim_replay.tum import open_sequence  # noqa: E402
-
-
-def _value(text: str):
-    if text in ("true", "false"):
-        return text == "true"
-    return float(text) if any(c in text for c in ".e") else int(text)
-
-
-def _rms(x: np.ndarray) -> float:
-    x = np.asarray(x)
-    return float(np.sqrt(np.mean(x**2))) * 1e3 if x.size else float("nan")
 
 
 def _keys(tr: NislamTracker) -> dict[int, tuple[float, np.ndarray]]:
@@ -53,19 +39,12 @@ def _keys(tr: NislamTracker) -> dict[int, tuple[float, np.ndarray]]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("seq", type=Path)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--noise-deg", type=float, default=0.0)
-    ap.add_argument("--seed", type=int, default=1)
+    ap = parser(__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=0)
     ap.add_argument("--list", action="store_true", help="one line per key change")
     ap.add_argument("--dump", type=Path, help="write the per-frame arrays to this .npz")
     args = ap.parse_args()
-    over = {k: _value(v) for k, v in (s.split("=", 1) for s in args.set)}
-    params = dataclasses.replace(NislamParams(), **over)
-    seq = open_sequence(args.seq)
-    att, _ = attitude_for_replay(seq, AttitudeErrorModel(noise_deg=args.noise_deg, seed=args.seed))
+    params, seq, att = setup(args)
     tr = NislamTracker(seq.intrinsics, params)
     rows = []  # (result, keys before, keys after)
     for n, frame in enumerate(seq.frames()):
@@ -134,20 +113,20 @@ def main() -> int:
     print(f"{len(rows)} frames; ATE {m_ev.ate_rmse_m * 1e3:.1f} mm; rpe1/3/10/30 "
           f"{m_ev.rpe_lag1_m * 1e3:.2f}/{m_ev.rpe_lag3_m * 1e3:.2f}/{m_ev.rpe_lag10_m * 1e3:.2f}/"
           f"{m_ev.rpe_lag30_m * 1e3:.2f} mm; path ratio {m_ev.path_length_ratio:.2f}")
-    print(f"lag-1 {_rms(n):.2f} mm: same key {_rms(n[same]):.2f} x {same.sum()}, changes "
-          f"{_rms(n[~same]):.2f} x {(~same).sum()} (share of squared error "
+    print(f"lag-1 {rms_mm(n):.2f} mm: same key {rms_mm(n[same]):.2f} x {same.sum()}, changes "
+          f"{rms_mm(n[~same]):.2f} x {(~same).sum()} (share of squared error "
           f"{np.sum(n[~same] ** 2) / np.sum(n ** 2):.2f})")
     for kind in ("reuse", "new"):
         m = kinds == kind
         if not m.any():
             continue
         jn = n[chg[m] - 1]
-        print(f"  {kind:5s} x {m.sum():2d}: jump {_rms(jn):.2f} RMS (median {np.median(jn) * 1e3:.2f}, max "
-              f"{jn.max() * 1e3:.1f}); keys' own position {_rms(np.linalg.norm(key_err[m], axis=1)):.2f}, "
-              f"measurement against the keys {_rms(np.linalg.norm(meas_err[m], axis=1)):.2f} mm RMS")
+        print(f"  {kind:5s} x {m.sum():2d}: jump {rms_mm(jn):.2f} RMS (median {np.median(jn) * 1e3:.2f}, max "
+              f"{jn.max() * 1e3:.1f}); keys' own position {rms_mm(np.linalg.norm(key_err[m], axis=1)):.2f}, "
+              f"measurement against the keys {rms_mm(np.linalg.norm(meas_err[m], axis=1)):.2f} mm RMS")
     kp = rows[-1][2]
     ke = np.array([p - (pos(np.array([tk]))[0] - g0) for tk, p in kp.values()])
-    print(f"keys held at the end: {len(kp)}, position error {_rms(np.linalg.norm(ke, axis=1)):.1f} mm RMS")
+    print(f"keys held at the end: {len(kp)}, position error {rms_mm(np.linalg.norm(ke, axis=1)):.1f} mm RMS")
     return 0
 
 

@@ -15,8 +15,6 @@ the peak (from the log-curvature) and the size of the lobe above half height.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -26,20 +24,13 @@ from scipy.spatial.transform import Rotation, Slerp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from nislam_experiment import parser, setup  # noqa: E402
+
 import onboard.nislam.tracker as tracker_mod  # noqa: E402
 from onboard.nislam import correlation  # noqa: E402
-from onboard.nislam.params import NislamParams  # noqa: E402
-from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay  # noqa: E402
-from sim_replay.tum import open_sequence  # noqa: E402
 
 R = 12  # half window kept around each peak (cells), as correlation._LOBE_HALF_CELLS
 YY, XX = np.mgrid[-R:R + 1, -R:R + 1]
-
-
-def _value(text: str):
-    if text in ("true", "false"):
-        return text == "true"
-    return float(text) if any(c in text for c in ".e") else int(text)
 
 
 def _log_parabola(w: np.ndarray) -> tuple[float, float]:
@@ -80,17 +71,10 @@ ESTIMATORS = {
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("seq", type=Path)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--noise-deg", type=float, default=0.0)
-    ap.add_argument("--seed", type=int, default=1)
+    ap = parser(__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=0, help="stop after N frames (0: all)")
     args = ap.parse_args()
-    over = {k: _value(v) for k, v in (s.split("=", 1) for s in args.set)}
-    params = dataclasses.replace(NislamParams(), **over)
-    seq = open_sequence(args.seq)
-    att, _ = attitude_for_replay(seq, AttitudeErrorModel(noise_deg=args.noise_deg, seed=args.seed))
+    params, seq, att = setup(args)
     calls: list = []
     find_peak = tracker_mod.find_peak
 

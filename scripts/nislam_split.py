@@ -17,8 +17,6 @@ with NI-SLAM and splits the lag-1 translation error (docs/nislam-error-budget.md
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -27,33 +25,15 @@ from scipy.spatial.transform import Rotation, Slerp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from nislam_experiment import parser, rms_mm, setup  # noqa: E402
+
 import onboard.nislam.tracker as tracker_mod  # noqa: E402
-from onboard.nislam.params import NislamParams  # noqa: E402
-from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay  # noqa: E402
-from sim_replay.tum import open_sequence  # noqa: E402
-
-
-def _value(text: str):
-    if text in ("true", "false"):
-        return text == "true"
-    return float(text) if any(c in text for c in ".e") else int(text)
-
-
-def _rms(x: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(x**2))) * 1e3 if len(x) else float("nan")
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("seq", type=Path)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--noise-deg", type=float, default=0.0)
-    ap.add_argument("--seed", type=int, default=1)
+    ap = parser(__doc__.split("\n\n")[0])
     args = ap.parse_args()
-    over = {k: _value(v) for k, v in (s.split("=", 1) for s in args.set)}
-    params = dataclasses.replace(NislamParams(), **over)
-    seq = open_sequence(args.seq)
-    att, _ = attitude_for_replay(seq, AttitudeErrorModel(noise_deg=args.noise_deg, seed=args.seed))
+    params, seq, att = setup(args)
     depth_of = {}
     original = tracker_mod.depth_translation
 
@@ -90,16 +70,16 @@ def main() -> int:
     n = np.linalg.norm(step, axis=1)
     same = ref[1:] == ref[:-1]
     reused = np.array([r.keyframe_reused for r, _, _ in rows])[1:]
-    print(f"{len(rows)} frames; lag-1 RPE {_rms(n):.2f} mm: same key {_rms(n[same]):.2f} "
-          f"({same.sum()} pairs), key changes {_rms(n[~same]):.2f} ({(~same).sum()}: "
-          f"re-used {_rms(n[~same & reused]):.2f} x {(~same & reused).sum()}, "
-          f"new {_rms(n[~same & ~reused]):.2f} x {(~same & ~reused).sum()}); "
+    print(f"{len(rows)} frames; lag-1 RPE {rms_mm(n):.2f} mm: same key {rms_mm(n[same]):.2f} "
+          f"({same.sum()} pairs), key changes {rms_mm(n[~same]):.2f} ({(~same).sum()}: "
+          f"re-used {rms_mm(n[~same & reused]):.2f} x {(~same & reused).sum()}, "
+          f"new {rms_mm(n[~same & ~reused]):.2f} x {(~same & ~reused).sum()}); "
           f"share of the squared error at changes {np.sum(n[~same] ** 2) / np.sum(n ** 2):.2f}")
     meas = np.array([(-r.shift_cells[0] * r.res_m, -r.shift_cells[1] * r.res_m, r.tz_m)
                      for r, _, _ in rows])
     inc_err = meas - r_k.inv().apply(true_p - pos(kt))
     print("error against the key, key axes x / y / z: "
-          + " / ".join(f"{_rms(inc_err[:, i]):.1f}" for i in range(3)) + " mm")
+          + " / ".join(f"{rms_mm(inc_err[:, i]):.1f}" for i in range(3)) + " mm")
     i = np.flatnonzero(same) + 1
     de = inc_err[i] - inc_err[i - 1]
     w = (r_k[i].inv() * r_f[i] * r_f[i - 1].inv() * r_k[i]).as_rotvec()  # frame-to-frame, key axes
@@ -109,13 +89,13 @@ def main() -> int:
     u = flow / np.maximum(fn[:, None], 1e-12)
     along = np.sum(de[:, :2] * u, axis=1)
     across = de[:, 1] * u[:, 0] - de[:, 0] * u[:, 1]
-    print(f"same-key lateral lag-1 {_rms(np.linalg.norm(de[:, :2], axis=1)):.2f} mm: along the "
-          f"rotation's flow {_rms(along):.2f}, across {_rms(across):.2f}; axial {_rms(de[:, 2]):.2f}")
+    print(f"same-key lateral lag-1 {rms_mm(np.linalg.norm(de[:, :2], axis=1)):.2f} mm: along the "
+          f"rotation's flow {rms_mm(along):.2f}, across {rms_mm(across):.2f}; axial {rms_mm(de[:, 2]):.2f}")
     print("| flow per frame | pairs | along mm | across mm | axial mm |\n|---|---|---|---|---|")
     for lo, hi in ((0.0, 0.02), (0.02, 0.04), (0.04, 0.07), (0.07, np.inf)):
         m = (fn >= lo) & (fn < hi)
-        print(f"| {lo * 1e3:.0f}-{hi * 1e3:.0f} mm | {m.sum()} | {_rms(along[m]):.2f} | "
-              f"{_rms(across[m]):.2f} | {_rms(de[m, 2]):.2f} |")
+        print(f"| {lo * 1e3:.0f}-{hi * 1e3:.0f} mm | {m.sum()} | {rms_mm(along[m]):.2f} | "
+              f"{rms_mm(across[m]):.2f} | {rms_mm(de[m, 2]):.2f} |")
     return 0
 
 
