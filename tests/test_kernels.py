@@ -125,17 +125,27 @@ def test_block_means_are_masked_block_averages(window) -> None:
         assert np.allclose(z, np.where(n > 0, blocks(depth * mask) / n, 0.0), atol=1e-6)
 
 
+# A slanted plane (key depth) and the same plane seen after a shift by
+# (du + fu, dv + fv) cells and t_z along the axis (current depth).
+PLANE_SHIFT = (3, -2, 0.3, -0.4, 0.02)  # du, dv, fu, fv [cells], t_z [m]
+
+
+def _shifted_plane() -> tuple[np.ndarray, np.ndarray, tuple]:
+    du, dv, fu, fv, tz = PLANE_SHIFT
+    vv, uu = np.mgrid[0:40, 0:50].astype(np.float64)
+    plane = lambda u, v: 2.0 + 0.01 * u + 0.005 * v  # noqa: E731
+    kd = plane(uu, vv).astype(np.float32)
+    cd = (plane(uu - du - fu, vv - dv - fv) - tz).astype(np.float32)
+    return kd, cd, PLANE_SHIFT
+
+
 def test_weighted_depth_sums_carry_differences_to_the_sub_cell_shift() -> None:
     """A slanted plane shifted by a non-integer number of cells: carried along
     the key's depth gradient to the sub-cell shift, every difference is -t_z
     exactly (a plane's central differences are exact); at the whole-cell shift
     (the paper's mean) the slope times the rounding biases it."""
-    h, w, du, dv, fu, fv, tz = 40, 50, 3, -2, 0.3, -0.4, 0.02
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-    plane = lambda u, v: 2.0 + 0.01 * u + 0.005 * v  # noqa: E731
-    kd = plane(uu, vv).astype(np.float32)
-    cd = (plane(uu - du - fu, vv - dv - fv) - tz).astype(np.float32)
-    ones = np.ones((h, w), np.float32)
+    kd, cd, (du, dv, fu, fv, tz) = _shifted_plane()
+    ones = np.ones_like(kd)
     args = (kd, ones, ones, cd, ones, ones, du, dv, 0.1, 0.1, 0.01, 1)
     got = kern.depth_difference_sums(*args, fu, fv, 0.0015, 0.001)
     assert got[kern.N] > 100
@@ -163,13 +173,9 @@ def test_depth_sums_carry_keeps_cells_next_to_holes() -> None:
     every matched cell and removes the rounding bias on a plane. Asking for
     all four neighbours kept ~1/16 of them here (and let t_z drift on the
     few dense ones)."""
-    h, w, du, dv, fu, fv, tz = 40, 50, 3, -2, 0.3, -0.4, 0.02
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-    plane = lambda u, v: 2.0 + 0.01 * u + 0.005 * v  # noqa: E731
-    kd = plane(uu, vv).astype(np.float32)
-    cd = (plane(uu - du - fu, vv - dv - fv) - tz).astype(np.float32)
-    ones = np.ones((h, w), np.float32)
-    km = (RNG.random((h, w)) > 0.5).astype(np.float32)
+    kd, cd, (du, dv, fu, fv, tz) = _shifted_plane()
+    ones = np.ones_like(kd)
+    km = (RNG.random(kd.shape) > 0.5).astype(np.float32)
     args = (kd, km, ones, cd, ones, ones, du, dv, 0.1, 0.1, 0.01, 1)
     plain = kern.depth_difference_sums(*args, 0.0, 0.0, 0.0, 0.0, False, 1)
     carried = kern.depth_difference_sums(*args, fu, fv, 0.0, 0.0, True, 1)

@@ -16,7 +16,7 @@ from onboard.fastorb.local_map import LocalMap, sample_depth
 from onboard.fastorb.matching import LkSettings, match_by_projection, track_lk
 from onboard.fastorb.motion import project
 from onboard.fastorb.params import FastOrbParams
-from onboard.fastorb.pose import PnpResult, PnpSettings, restricted, solve_pnp
+from onboard.fastorb.pose import PnpResult, PnpSettings, disparity, restricted, solve_pnp
 from onboard.fastorb.shutter import pixels_at_mid, refine_with_rate
 
 
@@ -35,8 +35,8 @@ class MapTracking:
 
     def solve(self, xyz_W: np.ndarray, uv: np.ndarray, depth_m: np.ndarray,
               prior: np.ndarray | None = None, xi: np.ndarray | None = None) -> PnpResult | None:
-        """PnP + RANSAC (or the predicted pose `prior`, if more points agree
-        with it), then refinement against the landmarks with this frame's
+        """PnP + RANSAC (or the predicted pose `prior` where RANSAC's re-fit
+        failed, pose._start), then refinement against the landmarks with this frame's
         depth at the tracked pixels (closer than rgbd_max_depth_m) as
         disparity residuals. With a rolling shutter and the camera's twist
         `xi` (per second), the pixels are first brought to the middle row's
@@ -57,7 +57,7 @@ class MapTracking:
         # model's rate is the last interval's, half a frame old and as noisy
         # as two poses (tum_fr1_rpy: lag-1 RPE 9.4 -> 12.1 mm with it alone).
         inl = fit.inliers
-        disp = np.where(z > 0, self.pnp.bf_px / np.where(z > 0, z, 1.0), 0.0)
+        disp = disparity(z, len(z), self.pnp.bf_px)
         T, omega = refine_with_rate(fit.T_cw, xyz_W[inl], uv[inl], disp[inl], self.K,
                                     self.pnp.bf_px, self.pnp.huber_px, readout, self.size[1],
                                     xi, self.p.rolling_shutter_rate_sd)

@@ -55,14 +55,14 @@ def solve_pnp(
     (robust Gauss-Newton; with huber_px = 0 and no depth term,
     cv2.solvePnPRefineLM) and gated again. `depth_m` (N,): the current frame's
     depth at `uv` (0: none), for the disparity residual. `prior`: a predicted
-    T_cw (the motion model's); the refinement starts from whichever of it
-    and RANSAC's pose more points agree with (see `_start`).
+    T_cw (the motion model's); the refinement starts from it instead of
+    RANSAC's pose when RANSAC's re-fit lost its consensus set (see `_start`).
     """
     if len(xyz_W) < max(min_inliers, 6):
         return None
     obj = np.ascontiguousarray(xyz_W, np.float64)
     img = np.ascontiguousarray(uv, np.float64)
-    disp = _disparity(depth_m, len(obj), s.bf_px)
+    disp = disparity(depth_m, len(obj), s.bf_px)
     found = _start(_ransac(obj, img, K, s), prior, obj, img, K, s)
     if found is None or found[1].sum() < min_inliers:
         return None
@@ -82,7 +82,7 @@ def solve_pnp(
     return PnpResult(T, inl, rms, cov)
 
 
-def _disparity(depth_m: np.ndarray | None, n: int, bf_px: float) -> np.ndarray:
+def disparity(depth_m: np.ndarray | None, n: int, bf_px: float) -> np.ndarray:
     """Measured virtual-stereo disparity bf / z [px] per point, 0 without depth."""
     if depth_m is None or bf_px <= 0:
         return np.zeros(n)
