@@ -257,6 +257,25 @@ def keyframe_cloud(
     map writer takes FastORB keys unchanged. Every `stride`-th pixel; the grid
     has the sampled image's size and a resolution that holds 95 % of the
     points. Drops the key frame's images afterwards."""
+    grid = cloud_grid(kf, K, stride, min_depth_m, max_depth_m)
+    return None if grid is None else grid_cloud(kf, grid)
+
+
+CloudGrid = tuple[float, np.ndarray, np.ndarray, np.ndarray]  # (res, depth, gray, bgr)
+
+
+def grid_cloud(kf: Keyframe, grid: CloudGrid) -> KeyframeCloud:
+    """The cloud of `cloud_grid` at the key frame's pose now."""
+    p_W, R_W_C = camera_in_world(kf.T_cw)
+    return KeyframeCloud(kf.keyframe_id, kf.t_s, p_W, R_W_C, *grid)
+
+
+def cloud_grid(
+    kf: Keyframe, K: np.ndarray, stride: int, min_depth_m: float, max_depth_m: float
+) -> CloudGrid | None:
+    """keyframe_cloud's grid (resolution, depth, gray, colour), which the
+    pose does not enter; None without images or with under 10 points.
+    Drops the key frame's images."""
     bgr, depth = kf.bgr, kf.depth_m
     kf.bgr = kf.depth_m = None
     if bgr is None or depth is None:
@@ -286,5 +305,4 @@ def keyframe_cloud(
     grid_bgr.reshape(-1, 3)[cell[first]] = bgr[vv[pick] * stride, uu[pick] * stride]
     wide = grid_bgr.astype(np.float32)
     gray = (wide[..., 0] + wide[..., 1] + wide[..., 2]) / np.float32(3.0) / np.float32(255.0)
-    p_W, R_W_C = camera_in_world(kf.T_cw)
-    return KeyframeCloud(kf.keyframe_id, kf.t_s, p_W, R_W_C, float(res), grid_depth, gray, grid_bgr)
+    return float(res), grid_depth, gray, grid_bgr

@@ -18,6 +18,7 @@ import numpy as np
 
 from onboard.core.se3 import pose_from_rvec, rvec_tvec, se3_exp
 from onboard.fastorb.kernels import pose_normal_equations, pose_residual_norms
+from onboard.fastorb.refine_kernels import gate_px, refine_pose_loop
 
 
 @dataclass(frozen=True)
@@ -167,7 +168,8 @@ def _gated(
     """Points whose residual under T_cw is within the gate drawn from `inl`."""
     err = pose_residual_norms(np.ascontiguousarray(T_cw[:3, :3]), T_cw[:3, 3].copy(), obj, img,
                               disp, K[0, 0], K[1, 1], K[0, 2], K[1, 2], s.bf_px)
-    return err <= _gate(err[inl], s)
+    return err <= gate_px(err, inl, float(s.sigma_gate), float(s.min_gate_px),
+                          float(s.reprojection_px))  # _gate, compiled
 
 
 def _gate(err_inliers: np.ndarray, s: PnpSettings) -> float:
@@ -192,12 +194,26 @@ def refine_pose(
     linearly): points whose track has drifted by a pixel or two pull the pose
     far less than in plain least squares. Only the points with `sel` (all
     by default) count. The normal equations of `_residuals` come from one
-    compiled pass (fastorb_kernels.pose_normal_equations)."""
+    compiled pass (fastorb_kernels.pose_normal_equations), the iterations
+    from one compiled loop (refine_kernels.refine_pose_loop)."""
     obj = np.ascontiguousarray(obj, np.float64)
     img = np.ascontiguousarray(img, np.float64)
     disp = np.zeros(len(obj)) if disp is None else np.ascontiguousarray(disp, np.float64)
     sel = np.ones(len(obj), bool) if sel is None else sel
-    T = T_cw
+    T = np.ascontiguousarray(T_cw, np.float64)
+    try:  # the loop compiled (refine_kernels); stops at a 10 um / 10 urad step
+        return refine_pose_loop(T, obj, img, disp, np.ascontiguousarray(sel, np.bool_), K[0, 0],
+                                K[1, 1], K[0, 2], K[1, 2], float(bf_px), float(huber_px),
+                                int(iterations))
+    except np.linalg.LinAlgError:  # a zero pivot the pre-check missed: the loop in numpy
+        return _refine_pose_numpy(T, obj, img, disp, sel, K, bf_px, huber_px, iterations)
+
+
+def _refine_pose_numpy(
+    T: np.ndarray, obj: np.ndarray, img: np.ndarray, disp: np.ndarray, sel: np.ndarray,
+    K: np.ndarray, bf_px: float, huber_px: float, iterations: int,
+) -> np.ndarray:
+    """refine_pose's loop in numpy (the compiled loop's reference)."""
     for _ in range(iterations):
         H, g = _normal_equations(T, obj, img, disp, sel, K, bf_px, huber_px)[:2]
         try:

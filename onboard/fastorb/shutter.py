@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from onboard.core.se3 import inverse, se3_exp, se3_log
+from onboard.fastorb.refine_kernels import refine_rate_loop
 
 
 def twist_rate(T_from: np.ndarray, T_to: np.ndarray, dt_s: float) -> np.ndarray:
@@ -87,6 +88,27 @@ def refine_with_rate(
     (xi_prior[:3], sd `rate_sd` in px-equivalent units of 1 px per rad/s x
     rate_sd) keeps it where few rows are seen; the translation rate stays
     the motion model's (xi_prior[3:]): at 0.3 m/s it shears by about 2 px."""
+    obj = np.ascontiguousarray(obj, np.float64)
+    uv = np.ascontiguousarray(uv, np.float64)
+    tau = row_times(uv[:, 1], readout_s, height_px)
+    xi_prior = np.asarray(xi_prior, np.float64)
+    try:  # the iterations compiled (refine_kernels.refine_rate_loop)
+        return refine_rate_loop(np.ascontiguousarray(T_cw, np.float64), xi_prior[:3].copy(),
+                                xi_prior[3:].copy(), xi_prior[:3].copy(), obj, uv,
+                                np.ascontiguousarray(disp, np.float64), tau, K[0, 0], K[1, 1],
+                                K[0, 2], K[1, 2], float(bf_px), float(huber_px), float(rate_sd),
+                                int(iterations))
+    except np.linalg.LinAlgError:  # a zero pivot the pre-check missed
+        return _refine_with_rate_numpy(T_cw, obj, uv, disp, K, bf_px, huber_px, readout_s,
+                                       height_px, xi_prior, rate_sd, iterations)
+
+
+def _refine_with_rate_numpy(
+    T_cw: np.ndarray, obj: np.ndarray, uv: np.ndarray, disp: np.ndarray, K: np.ndarray,
+    bf_px: float, huber_px: float, readout_s: float, height_px: int, xi_prior: np.ndarray,
+    rate_sd: float, iterations: int = 5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """refine_with_rate in numpy (the compiled loop's reference)."""
     obj = np.asarray(obj, np.float64)
     uv = np.asarray(uv, np.float64)
     tau = row_times(uv[:, 1], readout_s, height_px)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import replace
 
 import cv2
@@ -43,9 +44,11 @@ from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Trac
 from onboard.core.rotations import so3_log
 from onboard.core.se3 import camera_in_world, inverse, make_pose
 from onboard.fastorb import kernels as fastorb_kernels
+from onboard.fastorb import refine_kernels
 from onboard.fastorb.bundle import BaSettings
 from onboard.fastorb.features import Detector, Outcome, Tracked, outcome_result
-from onboard.fastorb.local_map import Keyframe, LocalMap, keyframe_cloud, sample_depth
+from onboard.fastorb.keyframing import KeyframeMaking
+from onboard.fastorb.local_map import CloudGrid, Keyframe, LocalMap
 from onboard.fastorb.loop import LoopClosing, LoopSettings, PlaceSettings
 from onboard.fastorb.map_tracking import MapTracking
 from onboard.fastorb.mapping import LocalMapping, MappingSettings, corrected
@@ -59,12 +62,12 @@ from onboard.fastorb.matching import (
 from onboard.fastorb.motion import FrameClock, predict_uam, project
 from onboard.fastorb.params import FastOrbParams
 from onboard.fastorb.pose import PnpResult, PnpSettings, landmark_sd, restricted, solve_pnp
-from onboard.fastorb.shutter import points_at_mid, twist_rate
+from onboard.fastorb.shutter import twist_rate
 
 log = logging.getLogger(__name__)
 
 
-class FastOrbTracker:
+class FastOrbTracker(KeyframeMaking):
     """FastORB tracking front end (one instance per camera)."""
 
     name = "fastorb"
@@ -97,7 +100,6 @@ class FastOrbTracker:
             depth_sd=p.local_ba_depth_sd)), enabled=p.loop_closure, pnp=self._pnp)
         self._maptrack = MapTracking(p, self.K, self._size, self._detector, self._map, self._lk,
                                      self._pnp)
-        self.keyframe_pose = self.loops.pose_of  # a key frame's T_cw now (final trajectory)
         self._state = TrackState.INITIALIZING
         self._tracked = Tracked.empty()
         self._prev_gray: np.ndarray | None = None
@@ -109,6 +111,9 @@ class FastOrbTracker:
         self._before_lost: tuple[tuple[float, np.ndarray], ...] = ()  # the motion model's poses
         self._last_T_cw: np.ndarray | None = None
         self._unfinished: Keyframe | None = None  # newest key, cloud not handed over yet
+        self._unfinished_grid: CloudGrid | None = None  # ... its cloud but for the pose
+        self._deferred: list[Callable[[], None]] = []  # for after the pose (finish_frame)
+        self._keyframe_queued = False
         self._next_keyframe_id = 0
         self._next_landmark_id = 0
         self._frames_since_keyframe = 0
@@ -119,10 +124,12 @@ class FastOrbTracker:
         self._reloc_cursor = 0
         self._reset_counter = 0
         fastorb_kernels.warm_up()  # compile (or load) before the first frame, not during it
+        refine_kernels.warm_up()
 
     # ------------------------------------------------------------------ API
     def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
         """Track one frame (the attitude is read only to orient a new map)."""
+        self.finish_frame()  # the last frame's, if the caller has not run it
         gray = self._clahe.apply(cv2.cvtColor(frame.bgr, cv2.COLOR_BGR2GRAY))  # step 1
         t_clock = self._clock(frame.t_s)
         self._t_motion = t_clock if self.p.uam_whole_frames else frame.t_s
@@ -140,6 +147,7 @@ class FastOrbTracker:
         LM iteration, or apply it; else loop closing: one key frame's query
         and correction), for the idle time after a frame; False when there
         was nothing to do. Never needed for tracking itself."""
+        self.finish_frame()
         if self.mapping is not None and not self.mapping.idle:
             correction = self.mapping.step()
         elif not self.loops.idle:
@@ -154,7 +162,13 @@ class FastOrbTracker:
 
     def finish(self) -> KeyframeCloud | None:
         """End of a run: the newest key frame's cloud."""
+        self.finish_frame()
         return self._take_cloud()
+
+    def keyframe_pose(self, keyframe_id: int) -> np.ndarray | None:
+        """A key frame's T_cw as now estimated (the final trajectory)."""
+        self.finish_frame()
+        return self.loops.pose_of(keyframe_id)
 
     # ------------------------------------------------------------- tracking
     def _track(self, frame: RgbdFrame, gray: np.ndarray) -> TrackResult:
@@ -193,10 +207,10 @@ class FastOrbTracker:
                       ", key frame" if new_key else (
                           ", local map" if outcome.features is not None else ""))
         finished: tuple[KeyframeCloud, ...] = ()
-        if new_key:
-            finished = self._make_keyframe(frame, gray, outcome)
+        if new_key:  # made after the pose (keyframing.py)
+            finished = self._keyframe_after_pose(frame, gray, outcome)
         elif firm and outcome.inliers < self.p.redetect_min_inliers:
-            outcome.tracked = self._replenish(frame, gray, outcome.T_cw, outcome.tracked)
+            self._replenish_after_pose(frame, gray, outcome)
         return self._tracked_result(frame.t_s, outcome, new_key, finished)
 
     def _twist(self) -> np.ndarray:
@@ -274,88 +288,6 @@ class FastOrbTracker:
         """Eq. 16: predicted pixels; points behind the camera keep their old pixel."""
         uv, z = project(self.K, prior, trk.xyz_W)
         return np.where((z > 1e-3)[:, None], uv, trk.uv).astype(np.float32)
-
-    def _replenish(
-        self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: Tracked
-    ) -> Tracked:
-        """Fewer than redetect_min_inliers: ORB detection only (no descriptors)
-        where no tracked point is, new landmarks from depth."""
-        feats = self._detector.detect(gray, with_descriptors=False, avoid=tracked.uv)
-        new, _ = self._landmarks(frame, T_cw, feats.uv[self._detector.free(tracked.uv, feats.uv)])
-        room = max(self.p.orb_features - len(tracked), 0)
-        return tracked.extended(new.subset(slice(0, room)))
-
-    def _landmarks(
-        self, frame: RgbdFrame, T_cw: np.ndarray, uv: np.ndarray
-    ) -> tuple[Tracked, np.ndarray]:
-        """New landmarks (fresh ids) for those pixels `uv` that have usable
-        depth, and which those were (bool (N,))."""
-        z = sample_depth(frame.depth_m, uv, self.p.min_depth_m, self.p.max_depth_m,
-                         self.p.depth_edge_rel)
-        ok = z > 0
-        n = int(ok.sum())
-        ids = np.arange(self._next_landmark_id, self._next_landmark_id + n, dtype=np.int64)
-        self._next_landmark_id += n
-        p_C = points_at_mid(uv[ok], z[ok], self.K, self._xi, self.p.rolling_shutter_readout_s,
-                            self._size[1])
-        xyz = (p_C - T_cw[:3, 3]) @ T_cw[:3, :3]  # R^T (p_C - t), row-wise
-        return Tracked(uv[ok].astype(np.float32), xyz, ids), ok
-
-    # ------------------------------------------------------------ key frames
-    def _keyframe_due(self, n_inliers: int) -> bool:
-        """Sec. III: a key frame once over keyframe_max_frames frames have passed
-        since the last, or tracking has dropped below keyframe_inlier_ratio of
-        the last key's inliers (ORB-SLAM2's rule; the paper's third trigger,
-        an idle local-mapping thread, has no counterpart without a back end);
-        never with fewer than keyframe_min_inliers tracked inliers."""
-        if n_inliers < self.p.keyframe_min_inliers:
-            return False
-        return (self._frames_since_keyframe >= self.p.keyframe_max_frames
-                or n_inliers < self.p.keyframe_inlier_ratio * self._keyframe_inliers)
-
-    def _make_keyframe(
-        self, frame: RgbdFrame, gray: np.ndarray, outcome: Outcome
-    ) -> tuple[KeyframeCloud, ...]:
-        """The posed frame with descriptors becomes a key frame (step 7). A
-        keypoint on a tracked point takes its landmark, the others get new
-        ones from depth; those away from tracked points join the tracked set."""
-        feats = outcome.features
-        assert feats is not None and feats.desc is not None
-        tracked = outcome.tracked
-        on = self._detector.pair_with(tracked.uv, feats.uv, 1.5)
-        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0])
-        kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on < 0)[has_depth]])
-        kf_pts = tracked.subset(on[on >= 0]).extended(fresh)
-        free = self._detector.free(tracked.uv, fresh.uv)
-        room = max(self.p.orb_features - len(tracked), 0)
-        outcome.tracked = tracked.extended(fresh.subset(np.flatnonzero(free)[:room]))
-        finished = self._take_cloud()
-        z = sample_depth(frame.depth_m, kf_pts.uv, self.p.min_depth_m, self.p.max_depth_m,
-                         self.p.depth_edge_rel)
-        kf = Keyframe(self._next_keyframe_id, frame.t_s, outcome.T_cw.copy(), gray,
-                      kf_pts.uv.astype(np.float64), feats.desc[kf_idx], kf_pts.xyz_W, kf_pts.ids,
-                      frame.bgr, frame.depth_m, z)
-        self._next_keyframe_id += 1
-        self._map.add(kf)
-        if self.mapping is not None:
-            self.mapping.on_keyframe(kf)
-        self.loops.on_keyframe(kf)
-        self._unfinished = kf
-        self._frames_since_keyframe = 0
-        # The 65 % rule's reference is what the key frame hands on to tracking
-        # (its inliers and the points it added), not its inliers alone: after
-        # a key frame that added 480 points to 150 inliers, a reference of
-        # 150 waited for the 630 to drop below 98, under keyframe_min_inliers,
-        # so the next key frame never came (aggressive, 60 deg/s).
-        self._keyframe_inliers = len(outcome.tracked)
-        return () if finished is None else (finished,)
-
-    def _take_cloud(self) -> KeyframeCloud | None:
-        kf, self._unfinished = self._unfinished, None
-        if kf is None or self.p.map_cloud_stride <= 0:
-            return None
-        return keyframe_cloud(kf, self.K, self.p.map_cloud_stride, self.p.min_depth_m,
-                              self.p.max_depth_m)
 
     # ------------------------------------------------- start, lost, re-localise
     def _initial_pose(self, t_s: float, attitude: AttitudeSource | None) -> np.ndarray:
@@ -468,8 +400,7 @@ class FastOrbTracker:
         self, t_s: float, state: TrackState, outcome: Outcome | None, reason: str | None,
         new_key: bool, finished: tuple[KeyframeCloud, ...],
     ) -> TrackResult:
-        kf = self._map.newest
         return outcome_result(t_s, state, outcome, reason, new_key, finished,
-                              -1 if kf is None else kf.keyframe_id, self._reset_counter,
+                              self._newest_keyframe_id(), self._reset_counter,
                               self.p.redetect_min_inliers,
                               *self.loops.result_fields())
