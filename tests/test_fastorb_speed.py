@@ -114,3 +114,13 @@ def test_keyframe_work_after_the_pose_changes_no_pose() -> None:
         assert [c.keyframe_id for c in ra.finished_keyframes] == [
             c.keyframe_id for c in rb.finished_keyframes]
     assert keys >= 3
+
+
+def test_shutter_points_equal_the_cross_product_form() -> None:
+    """points_at_mid's written-out omega x p is np.cross's, bit for bit."""
+    rng = np.random.default_rng(6)
+    uv, z, xi = rng.uniform(0, 640, (200, 2)), rng.uniform(0.5, 4.0, 200), rng.normal(0, 1, 6)
+    p = shutter.points_at_mid(uv, z, K, np.zeros(6), 0.028, INTR.height)  # no motion: as seen
+    tau = shutter.row_times(uv[:, 1], 0.028, INTR.height)[:, None]
+    np.testing.assert_array_equal(shutter.points_at_mid(uv, z, K, xi, 0.028, INTR.height),
+                                  p - tau * (np.cross(xi[:3], p) + xi[3:]))

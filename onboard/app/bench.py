@@ -85,6 +85,10 @@ def bench(
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
     frames, stages = read_timed(seq, max_frames)
     frame_ms: list[float] = []
+    # The same by this thread's CPU time: what another process's load adds
+    # to the wall time (waiting for a core) is left out, so figures taken on
+    # a busy machine stay comparable.
+    cpu_ms: list[float] = []
     backend_ms: list[float] = []  # FastORB's back-end slices, run after a frame and timed apart
     job_ms: list[float] = []  # ... summed per key frame (one local BA)
     loop_ms: list[float] = []  # loop closing: one key frame's query and check
@@ -92,6 +96,7 @@ def bench(
     results: list[TrackResult] = []
     # by kind: a frame that starts a key or re-uses a kept one does more work
     kind_ms: dict[str, list[float]] = {"keyframe": [], "reused": [], "plain": []}
+    kind_cpu_ms: dict[str, list[float]] = {k: [] for k in kind_ms}
     deferred_ms: list[float] = []  # finish_frame(): after the pose
     kind_deferred_ms: dict[str, list[float]] = {k: [] for k in kind_ms}
     parts_ms: dict[str, list[float]] = {}  # the fused tracker's parts (last_part_ms)
@@ -99,15 +104,17 @@ def bench(
         tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
         finish_frame = getattr(tracker, "finish_frame", None)
         for frame in frames:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             result = tracker.track(frame, attitude)
             dt_ms = (time.perf_counter() - t0) * 1e3
+            cpu_ms.append((time.thread_time() - c0) * 1e3)
             frame_ms.append(dt_ms)
             if len(results) < len(frames):
                 results.append(result)
             kind = ("keyframe" if result.new_keyframe
                     else "reused" if result.keyframe_reused else "plain")
             kind_ms[kind].append(dt_ms)
+            kind_cpu_ms[kind].append(cpu_ms[-1])
             if finish_frame is not None:
                 t0 = time.perf_counter()
                 finish_frame()
@@ -132,6 +139,8 @@ def bench(
     for kind, ms in kind_ms.items():
         by_kind[f"{kind}_frames"] = len(ms) // repeat
         by_kind[f"{kind}_frames_ms_median"] = float(np.median(ms)) if ms else None
+        c = kind_cpu_ms[kind]
+        by_kind[f"{kind}_frames_cpu_ms_median"] = float(np.median(c)) if c else None
         d = kind_deferred_ms[kind]
         by_kind[f"{kind}_deferred_ms_median"] = float(np.median(d)) if d else None
     stages["tracker"] = frame_ms
@@ -143,6 +152,8 @@ def bench(
         "frames": len(frames),
         "repeat": repeat,
         **frame_time_stats(frame_ms),
+        "cpu_ms_median": float(np.median(cpu_ms)) if cpu_ms else None,
+        "cpu_ms_p95": float(np.percentile(cpu_ms, 95)) if cpu_ms else None,
         **by_kind,
         "deferred_ms_median": float(np.median(deferred_ms)) if deferred_ms else None,
         "deferred_ms_p95": float(np.percentile(deferred_ms, 95)) if deferred_ms else None,

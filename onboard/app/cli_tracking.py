@@ -122,6 +122,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                  ("plain", "other"))]
     print("median by frame kind: " + ", ".join(
         f"{label} {ms:.2f} ms ({n})" for label, n, ms in kinds if ms is not None))
+    if stats["cpu_ms_median"] is not None:  # thread CPU time: less inflated by other load
+        cpu = [(label, stats[f"{kind}_frames_cpu_ms_median"])
+               for kind, label in (("keyframe", "new key"), ("plain", "other"))]
+        print(f"CPU time per frame: median {stats['cpu_ms_median']:.2f} ms, "
+              f"p95 {stats['cpu_ms_p95']:.2f} ms; " + ", ".join(
+                  f"{label} {ms:.2f} ms" for label, ms in cpu if ms is not None))
     if stats["deferred_ms_median"] is not None:  # finish_frame(): after the pose
         new_key = stats["keyframe_deferred_ms_median"]
         print(f"after the pose (finish_frame): median {stats['deferred_ms_median']:.2f} ms, "

@@ -55,7 +55,12 @@ def points_at_mid(
     if readout_s == 0.0 or not np.any(xi):
         return p
     tau = row_times(uv[:, 1], readout_s, height_px)[:, None]
-    return p - tau * (np.cross(xi[:3], p) + xi[3:])
+    w0, w1, w2 = xi[0], xi[1], xi[2]  # omega x p written out: np.cross's own products, less overhead
+    cross = np.empty_like(p)
+    cross[:, 0] = w1 * p[:, 2] - w2 * p[:, 1]
+    cross[:, 1] = w2 * p[:, 0] - w0 * p[:, 2]
+    cross[:, 2] = w0 * p[:, 1] - w1 * p[:, 0]
+    return p - tau * (cross + xi[3:])
 
 
 def pixels_at_mid(
