@@ -10,9 +10,10 @@ on a few hundred points. Here one call runs every iteration.
   gate_px            pose._gate: the inlier threshold from a median
 
 The same equations as the numpy forms (the tests compare them on random
-problems); sums run in another order, so results agree to rounding
-(~1e-15 relative), not bit for bit. `warm_up()` compiles them with the
-other kernels.
+problems). refine_pose_loop gives numpy's bits (the same kernels, LAPACK and
+BLAS calls and formula order); the rate fit sums its 9 x 9 system in
+another order than numpy's BLAS product and agrees to rounding (~1e-15
+relative). `warm_up()` compiles them with the other kernels.
 """
 
 from __future__ import annotations
@@ -27,50 +28,47 @@ from onboard.fastorb.kernels import pose_normal_equations
 
 @njit(cache=True, nogil=True)
 def se3_exp_left(xi, T):
-    """exp(xi^) T for a twist xi = (phi, rho) and a 4x4 T (core.se3.se3_exp:
-    Rodrigues as OpenCV writes it, and the left Jacobian V for rho)."""
-    p0, p1, p2 = xi[0], xi[1], xi[2]
+    """exp(xi^) T for a twist xi = (phi, rho) and a 4x4 T, bit for bit as
+    core.se3.se3_exp(xi) @ T computes it: cv2.Rodrigues's formula in its
+    order of operations, the left Jacobian V as se3._v_matrix writes it
+    (Python's a**n is C pow), and the products through BLAS as numpy's
+    matmul (tests/test_fastorb_speed.py checks the bits)."""
+    phi = xi[:3].copy()
+    rho = xi[3:6].copy()
+    p0, p1, p2 = phi[0], phi[1], phi[2]
     R = np.eye(3)
-    a2 = p0 * p0 + p1 * p1 + p2 * p2
-    a = math.sqrt(a2)
-    if a >= 2.220446049250313e-16:  # cv2.Rodrigues: the identity below DBL_EPSILON
-        c = math.cos(a)
-        s = math.sin(a)
+    theta = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    if theta >= 2.220446049250313e-16:  # cv2.Rodrigues: the identity below DBL_EPSILON
+        c = math.cos(theta)
+        s = math.sin(theta)
         c1 = 1.0 - c
-        ia = 1.0 / a
-        r0, r1, r2 = p0 * ia, p1 * ia, p2 * ia
-        R[0, 0] = c + c1 * r0 * r0
-        R[0, 1] = c1 * r0 * r1 - s * r2
-        R[0, 2] = c1 * r0 * r2 + s * r1
-        R[1, 0] = c1 * r0 * r1 + s * r2
-        R[1, 1] = c + c1 * r1 * r1
-        R[1, 2] = c1 * r1 * r2 - s * r0
-        R[2, 0] = c1 * r0 * r2 - s * r1
-        R[2, 1] = c1 * r1 * r2 + s * r0
-        R[2, 2] = c + c1 * r2 * r2
-    # V = I + A K + B K^2 (K = [phi]x); small angles: A = 1/2, B = 1/6
-    if a < 1e-6:
-        A = 0.5
-        B = 1.0 / 6.0
-    else:
-        A = (1.0 - math.cos(a)) / a2
-        B = (a - math.sin(a)) / (a2 * a)
+        it = 1.0 / theta
+        r0, r1, r2 = p0 * it, p1 * it, p2 * it
+        R[0, 0] = c + c1 * (r0 * r0)
+        R[0, 1] = c1 * (r0 * r1) + s * (-r2)
+        R[0, 2] = c1 * (r0 * r2) + s * r1
+        R[1, 0] = c1 * (r0 * r1) + s * r2
+        R[1, 1] = c + c1 * (r1 * r1)
+        R[1, 2] = c1 * (r1 * r2) + s * (-r0)
+        R[2, 0] = c1 * (r0 * r2) + s * (-r1)
+        R[2, 1] = c1 * (r1 * r2) + s * r0
+        R[2, 2] = c + c1 * (r2 * r2)
+    a = math.sqrt(np.dot(phi, phi))
     K = np.zeros((3, 3))
     K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -p2, p1, p2, -p0, -p1, p0
     KK = K @ K
-    V = np.eye(3) + A * K + B * KK
-    t = V @ xi[3:6]
-    out = np.empty((4, 4))
-    for i in range(3):
-        for j in range(4):
-            acc = 0.0
-            for k in range(3):
-                acc += R[i, k] * T[k, j]
-            if j == 3:
-                acc += t[i] * T[3, 3]
-            out[i, j] = acc
-    out[3, :] = T[3, :]
-    return out
+    if a < 1e-6:
+        V = np.eye(3) + 0.5 * K + KK / 6.0
+    else:
+        # C pow as Python's a**2 calls it; a literal 2.0 would let LLVM
+        # write a * a, which pow rounds otherwise in ~1 case in 1000.
+        two = 2.0 + 0.0 * a
+        V = (np.eye(3) + (1.0 - math.cos(a)) / math.pow(a, two) * K
+             + (a - math.sin(a)) / math.pow(a, 3.0) * KK)
+    E = np.eye(4)
+    E[:3, :3] = R
+    E[:3, 3] = V @ rho
+    return E @ np.ascontiguousarray(T)
 
 
 @njit(cache=True, nogil=True)
