@@ -130,8 +130,8 @@ def test_the_rolling_shutter_re_solve_runs_one_ransac(monkeypatch) -> None:
     """MapTracking.solve on rolling-shutter pixels: RANSAC for the first fit
     only; the re-solve with the measured rate refines from the joint fit and
     lands on the true pose, with the rate the rows' shear shows."""
-    from test_fastorb_realdata import K as K_RS
     from test_fastorb_realdata import H, W, _rolling_shutter_pixels, _scene, _truth
+    from test_fastorb_realdata import K as K_RS
 
     from onboard.fastorb.map_tracking import MapTracking
 
