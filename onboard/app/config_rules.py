@@ -357,6 +357,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "service.attitude_wait_s": Range(0.0, 1.0),
     "service.stats_period_s": DURATION,
     "service.replay_speed": Range(0.01, 100.0),
+    "service.realtime_priority": Range(0, 49),  # below the kernel's IRQ threads (50)
     # nislam run --sim-follow
     "sim_follow.request": Choice(SIM_FOLLOW_REQUESTS),
     "sim_follow.state_rate_hz": Range(1.0, 1000.0),
