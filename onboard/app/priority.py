@@ -8,7 +8,8 @@ and the capture -> pose p99 52-57 ms; at SCHED_FIFO the wake-ups are on time
 on Linux does the same (ArduPilot's and PX4's Linux builds run their threads
 at SCHED_FIFO).
 
-Raised once the first frame is tracked, so numba's compilation at start-up
+Raised by `nislam run` (Service(realtime=True): a process-wide setting is the
+entry point's to ask for) once the first frame is tracked, so numba's compilation at start-up
 never runs at this priority; every thread of the process is raised, and
 threads started later inherit it from their creator. Needs root,
 CAP_SYS_NICE or an RLIMIT_RTPRIO of at least the priority; without them the

@@ -99,7 +99,10 @@ class Service:
         emit: Emit | None = None,
         out_dir: Path | None = None,
         tracker_factory: TrackerFactory = make_tracker,
+        realtime: bool = False,
     ) -> None:
+        """`realtime`: raise the process to `[service] realtime_priority` once
+        tracking (a process-wide setting: only the program's entry point asks)."""
         self.cfg = cfg
         self.sc = cfg.service
         self.sources = sources
@@ -109,6 +112,7 @@ class Service:
         self.emit = emit or (lambda line: log.info("%s", line))
         self.out_dir = out_dir
         self.tracker_factory = tracker_factory
+        self.realtime = realtime
         self.stats = LoopStats()
         # Trusted poses are kept only to be scored or written: a service on
         # hardware without --out (or a looped soak) keeps nothing that grows.
@@ -270,7 +274,8 @@ class Service:
                          report.state is Health.TRACKING)
         if not self.ready:
             self.ready = True
-            self.scheduling = raise_to_realtime(self.sc.realtime_priority)
+            if self.realtime:
+                self.scheduling = raise_to_realtime(self.sc.realtime_priority)
             self.notifier.ready(f"tracking with {tracker.name}: first frame in")
             log.info("ready: first frame tracked (%s)", report.state.value)
         self._maybe_stats(now)
