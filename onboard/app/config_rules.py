@@ -318,6 +318,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "ahrs.buffer_samples": Range(2, 1_000_000),
     "ahrs.max_age_s": DURATION,
     "ahrs.max_gap_s": DURATION,
+    "ahrs.smoothing_s": Range(0.0, 0.1),  # wider: the fit would flatten the vehicle's own motion
     "myahrs.port": Check(lambda v: None if v.strip() else "must not be empty"),
     "myahrs.baud": BAUD,
     "myahrs.divider": Range(1, 100),

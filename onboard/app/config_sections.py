@@ -51,6 +51,7 @@ class AhrsConfig:
     buffer_samples: int = 1024  # samples kept (10 s at 100 Hz)
     max_age_s: float = 0.25  # an AHRS this far behind a frame is not waited for (silent)
     max_gap_s: float = 0.1  # no interpolation across a longer gap between samples
+    smoothing_s: float = 0.04  # attitude at a time: quadratic fit over +- this (core/attitude_smoothing.py)
 
 
 @dataclass(frozen=True)
