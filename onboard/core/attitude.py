@@ -4,8 +4,9 @@ Drivers turn what their sensor reports (the AHRS axes A in the sensor's world)
 into `AttitudeSample`s of the vehicle body B in the AHRS world W (gravity
 aligned, z down) with `to_body_sample`, using the AHRS-to-body rotation from
 config, and push them into an `AttitudeBuffer`. The buffer implements
-`onboard.core.messages.AttitudeSource`: `rotation_at(t_s)` slerps between the two
-samples around `t_s` and returns R_W_C = R_W_B(t) R_B_C with the camera
+`onboard.core.messages.AttitudeSource`: `rotation_at(t_s)` fits the samples
+within `smoothing_s` of `t_s` (onboard.core.attitude_smoothing) or slerps
+between the two around it, and returns R_W_C = R_W_B(t) R_B_C with the camera
 mount, or None ("no attitude") when the query lies outside the buffered span
 or the two samples around it are further apart than `max_gap_s` (an outage).
 A frame captured while the AHRS was talking keeps its attitude however late
