@@ -125,28 +125,3 @@ def test_shutter_points_equal_the_cross_product_form() -> None:
     np.testing.assert_array_equal(shutter.points_at_mid(uv, z, K, xi, 0.028, INTR.height),
                                   p - tau * (np.cross(xi[:3], p) + xi[3:]))
 
-
-def test_the_rolling_shutter_re_solve_runs_one_ransac(monkeypatch) -> None:
-    """MapTracking.solve on rolling-shutter pixels: RANSAC for the first fit
-    only; the re-solve with the measured rate refines from the joint fit and
-    lands on the true pose, with the rate the rows' shear shows."""
-    from test_fastorb_realdata import H, W, _rolling_shutter_pixels, _scene, _truth
-    from test_fastorb_realdata import K as K_RS
-
-    from onboard.fastorb.map_tracking import MapTracking
-
-    X, T_mid = _scene(300, seed=9), _truth()
-    xi = np.array([0.4, 1.1, -0.3, 0.1, 0.0, 0.0])
-    uv = _rolling_shutter_pixels(X, T_mid, xi, 0.028)
-    p = FastOrbParams(rolling_shutter_readout_s=0.028)
-    mt = MapTracking(p, K_RS, (W, H), None, None, None, pose.PnpSettings(bf_px=0.0))
-    calls = []
-    ransac = pose._ransac
-    monkeypatch.setattr(pose, "_ransac", lambda *a: calls.append(1) or ransac(*a))
-    prior = se3_exp(np.array([0.002, -0.001, 0.001, 0.003, 0.001, -0.002])) @ T_mid
-    guess = xi.copy()
-    guess[:3] += np.array([0.3, -0.3, 0.2])
-    fit = mt.solve(X, uv, np.zeros((H, W), np.float32), prior, guess)
-    assert fit is not None and len(calls) == 1
-    d = fit.T_cw @ np.linalg.inv(T_mid)
-    assert np.linalg.norm(d[:3, 3]) < 1e-3 and np.linalg.norm(mt.rate - xi[:3]) < 0.05

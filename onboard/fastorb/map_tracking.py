@@ -56,22 +56,15 @@ class MapTracking:
         # pose again on pixels brought to the middle row with it: the motion
         # model's rate is the last interval's, half a frame old and as noisy
         # as two poses (tum_fr1_rpy: lag-1 RPE 9.4 -> 12.1 mm with it alone).
-        # The re-solve refines from the joint fit and the first fit's inliers;
-        # a second RANSAC only when that keeps fewer inliers than the first
-        # fit (tum_fr1_rpy: lag-1 RPE 7.5 -> 5.9 mm, one RANSAC less per
-        # frame; docs/fastorb_backend.md "Per-frame cost").
         inl = fit.inliers
         disp = disparity(z, len(z), self.pnp.bf_px)
         T, omega = refine_with_rate(fit.T_cw, xyz_W[inl], uv[inl], disp[inl], self.K,
                                     self.pnp.bf_px, self.pnp.huber_px, readout, self.size[1],
                                     xi, self.p.rolling_shutter_rate_sd)
         xi_fit = np.concatenate([omega, xi[3:]])
-        uv_mid = pixels_at_mid(uv, project(self.K, T, xyz_W)[1], self.K, xi_fit, readout,
-                               self.size[1])
-        again = solve_pnp(xyz_W, uv_mid, self.K, self.pnp, self.p.min_inliers, z, T,
-                          start=(T, inl))
-        if again is None or again.inliers.sum() < inl.sum():
-            again = solve_pnp(xyz_W, uv_mid, self.K, self.pnp, self.p.min_inliers, z, T)
+        again = solve_pnp(xyz_W, pixels_at_mid(uv, project(self.K, T, xyz_W)[1], self.K, xi_fit,
+                                               readout, self.size[1]),
+                          self.K, self.pnp, self.p.min_inliers, z, T)
         if again is None or again.inliers.sum() < fit.inliers.sum():
             self.rate = xi[:3].copy()  # a blurred frame's shear misleads: keep the first fit
             return fit

@@ -49,7 +49,6 @@ def solve_pnp(
     min_inliers: int,
     depth_m: np.ndarray | None = None,
     prior: np.ndarray | None = None,
-    start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PnpResult | None:
     """T_cw from correspondences; None when fewer than `min_inliers` agree.
 
@@ -59,16 +58,13 @@ def solve_pnp(
     depth at `uv` (0: none), for the disparity residual. `prior`: a predicted
     T_cw (the motion model's); the refinement starts from it instead of
     RANSAC's pose when RANSAC's re-fit lost its consensus set (see `_start`).
-    `start`: (T_cw, inliers) to refine from instead of RANSAC's, for a pose
-    already fitted to nearly these pixels (the rolling-shutter re-solve).
     """
     if len(xyz_W) < max(min_inliers, 6):
         return None
     obj = np.ascontiguousarray(xyz_W, np.float64)
     img = np.ascontiguousarray(uv, np.float64)
     disp = disparity(depth_m, len(obj), s.bf_px)
-    found = start if start is not None else _start(_ransac(obj, img, K, s), prior, obj, img,
-                                                   K, s)
+    found = _start(_ransac(obj, img, K, s), prior, obj, img, K, s)
     if found is None or found[1].sum() < min_inliers:
         return None
     T, inl = found
