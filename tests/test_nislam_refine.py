@@ -1,0 +1,100 @@
+"""The key refinement (Eq. 19, kernels.refine_key): a matched frame's depth is
+carried to the sub-cell peak and gated before it is averaged into the key, so
+the key's depth does not drift on slanted surfaces or at occluding edges and
+the next frames' t_z (Eq. 18) does not inherit it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from onboard.nislam import kernels as kern
+
+H, W = 40, 50
+GX, GY = 0.01, 0.005  # key depth slope [m per cell]: a surface seen at a slant
+
+
+def plane(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return 2.0 + GX * u + GY * v
+
+
+def frame(du: int, dv: int, fu: float, fv: float, tz: float) -> np.ndarray:
+    """The plane seen after a shift by (du + fu, dv + fv) cells and t_z along
+    the key's axis, as the current frame's projection holds it."""
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    return (plane(uu - du - fu, vv - dv - fv) - tz).astype(np.float32)
+
+
+def key() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    return (np.full((H, W), 0.5, np.float32), plane(uu, vv).astype(np.float32),
+            np.ones((H, W), np.float32))
+
+
+def refine(ref, cur, shift, tz, carry: bool = True, gate: float = 0.1) -> int:
+    du, dv, fu, fv = shift
+    ones = np.ones((H, W), np.float32)
+    return kern.refine_key(*ref, ones * 0.5, cur, ones, du, dv, fu if carry else 0.0,
+                           fv if carry else 0.0, tz, gate)
+
+
+def tz_against(ref, cur, shift) -> float:
+    du, dv, fu, fv = shift
+    ones = np.ones((H, W), np.float32)
+    sums = kern.depth_difference_sums(ref[1], ones, ref[0], cur, ones, ones * 0.5, du, dv, 0.1,
+                                      0.1, 0.01, 1, fu, fv, 0.0015, 0.001, True, 1)
+    return -float(sums[kern.SUM_D] / sums[kern.SUM_W])
+
+
+A = (3, -2, 0.4, -0.35)  # the refining frame's shift: whole and sub-cell parts
+B = (5, 1, -0.3, 0.2)  # the next frame's
+
+
+def test_refined_key_stays_on_the_surface() -> None:
+    """Averaged in at the whole-cell shift the frame's depth is the surface
+    (fu, fv) cells away: the key's depth moves by half of -(fu GX + fv GY)
+    after one frame; carried along the slope it stays exact."""
+    ref = key()
+    n = refine(ref, frame(*A, 0.03), A, 0.03)
+    inner = np.s_[3:-3, 6:-6]
+    assert n > 0.7 * H * W
+    assert np.abs(ref[1][inner] - key()[1][inner]).max() < 2e-5
+    assert (ref[2][inner] == 2.0).all()
+    old = key()
+    refine(old, frame(*A, 0.03), A, 0.03, carry=False)
+    bias = -(A[2] * GX + A[3] * GY) / 2
+    assert np.median(old[1][inner] - key()[1][inner]) == pytest.approx(bias, abs=1e-5)
+
+
+def test_next_frame_t_z_against_the_refined_key_is_exact() -> None:
+    """Two frames with known t_z: the second measured against a key refined by
+    the first. The old refinement leaves the first frame's rounding times the
+    slope in the key, and the second frame's t_z inherits it."""
+    tz_a, tz_b = 0.03, -0.02
+    ref = key()
+    refine(ref, frame(*A, tz_a), A, tz_a)
+    assert tz_against(ref, frame(*B, tz_b), B) == pytest.approx(tz_b, abs=2e-5)
+    old = key()
+    refine(old, frame(*A, tz_a), A, tz_a, carry=False)
+    err = tz_against(old, frame(*B, tz_b), B) - tz_b
+    assert abs(err) > 1e-3  # ~1.2 mm: half of 0.4 x 10 mm - 0.35 x 5 mm, on every cell
+
+
+def test_other_surface_does_not_enter_the_key() -> None:
+    """Cells where the frame sees another surface (behind an occluding edge,
+    0.5 m away) are left as they were, count included; Eq. 18's gate would
+    reject them, and averaged in they would move the key's depth there by
+    25 cm."""
+    ref = key()
+    cur = frame(*A, 0.0)
+    cur[10:20, 10:30] += 0.5
+    refine(ref, cur, A, 0.0)
+    ks = np.s_[10 - A[1]:20 - A[1], 10 - A[0]:30 - A[0]]  # key cells of that patch
+    assert np.abs(ref[1][ks] - key()[1][ks]).max() < 1e-6
+    assert (ref[2][ks] == 1.0).all()
+    # A key cell that was empty takes the frame's depth as it is.
+    empty = key()
+    empty[2][5, 5] = 0.0
+    refine(empty, cur, A, 0.0)
+    assert empty[2][5, 5] == 1.0
+    assert empty[1][5, 5] == pytest.approx(cur[5 + A[1], 5 + A[0]], abs=1e-6)
