@@ -98,3 +98,71 @@ def test_other_surface_does_not_enter_the_key() -> None:
     refine(empty, cur, A, 0.0)
     assert empty[2][5, 5] == 1.0
     assert empty[1][5, 5] == pytest.approx(cur[5 + A[1], 5 + A[0]], abs=1e-6)
+
+
+def _view(z_m: float, seed: int, tz: float):
+    """A wall at z_m metres, 200 x 260 cells, a fifth of them holding a
+    point (a far, sparse view), seen twice with the sensor noise
+    0.0015 z^2 drawn anew (key, then a frame moved t_z towards it)."""
+    from types import SimpleNamespace
+
+    from onboard.nislam.projection import AxonometricImage
+
+    rng = np.random.default_rng(seed)
+    shape = (200, 260)
+    sd = 0.0015 * z_m * z_m
+    km = (rng.random(shape) < 0.2).astype(np.float32)
+    cm = (rng.random(shape) < 0.2).astype(np.float32)
+    gray = np.full(shape, 0.5, np.float32)
+    kd = ((z_m + rng.normal(0.0, sd, shape)) * km).astype(np.float32)
+    cd = ((z_m - tz + rng.normal(0.0, sd, shape)) * cm).astype(np.float32)
+    key = SimpleNamespace(depth_ref=kd, mask0=km, gray_ref=gray,
+                          img=SimpleNamespace(res_m=0.01))
+    return key, AxonometricImage(gray, cd, cm, 0.01)
+
+
+def _tz_errors(z_m: float, **params) -> tuple[np.ndarray, np.ndarray]:
+    """t_z errors over 24 noise draws, and the matched cells, with `params`."""
+    import dataclasses
+
+    from onboard.nislam.depth import depth_translation
+    from onboard.nislam.params import NislamParams
+
+    p = dataclasses.replace(NislamParams(), **{"min_matched_cells": 50, "depth_gate_sigmas": 0.0,
+                                               "depth_all_cells_sd_m": 0.0, **params})
+    fits = [depth_translation(*_view(z_m, seed, 0.02), 0, 0, p) for seed in range(24)]
+    return np.array([f.tz_m - 0.02 for f in fits]), np.array([f.matched for f in fits])
+
+
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(e))))
+
+
+def test_far_view_depth_gate_scales_with_the_noise() -> None:
+    """At 5 m a difference of two depths errs by 52 mm: the fixed 0.1 m gate
+    around the median of ~130 sampled cells cuts it at 2 sigma about that
+    median's own error (~6 mm), and t_z follows the median (2.3 mm RMS
+    here against 1.1 mm for the plain mean of every matched cell). Widened
+    to 4 sigma of each difference's noise, the cut is about the truth."""
+    fixed, _ = _tz_errors(5.0)
+    scaled, _ = _tz_errors(5.0, depth_gate_sigmas=4.0)
+    assert _rms(fixed) > 1.8e-3
+    assert _rms(scaled) < 0.7 * _rms(fixed)
+    # A near view (1 m: 2 mm) keeps the fixed gate: the same cells, the same t_z.
+    near_fixed, n_fixed = _tz_errors(1.0)
+    near_scaled, n_scaled = _tz_errors(1.0, depth_gate_sigmas=4.0)
+    assert (n_fixed == n_scaled).all()
+    assert np.allclose(near_fixed, near_scaled, atol=1e-9)
+
+
+def test_far_sparse_view_takes_every_cell() -> None:
+    """At 5 m every other row and column leaves t_z uncertain by more than
+    depth_all_cells_sd_m (sensor noise alone, from the weights' sum): then
+    every cell is summed; a near view keeps to the sampled cells."""
+    _, sampled = _tz_errors(5.0, depth_gate_sigmas=4.0)
+    every, matched = _tz_errors(5.0, depth_gate_sigmas=4.0, depth_all_cells_sd_m=0.0003)
+    assert (matched > 3 * sampled).all()
+    assert _rms(every) < _rms(_tz_errors(5.0, depth_gate_sigmas=4.0)[0])
+    _, near = _tz_errors(1.0, depth_all_cells_sd_m=0.0003)
+    _, near_sampled = _tz_errors(1.0)
+    assert (near == near_sampled).all()
