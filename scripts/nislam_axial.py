@@ -25,7 +25,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from nislam_experiment import parser, rms_mm, setup  # noqa: E402
 
 import onboard.nislam.tracker as tracker_mod  # noqa: E402
-from onboard.nislam import kernels as kern  # noqa: E402
 
 
 def slope_grid(depth, mask, axis):
@@ -89,14 +88,17 @@ def estimate(kd, km, kg, cd, cm, cg, u, v, p, how="weighted", step=2):
     med = np.median(d)
     if how != "nocarry":
         d = d + fu * gx + fv * gy
-    keep = np.abs(d - med) < p.gate_depth_m
-    d, zk, zc, gx, gy = d[keep], zk[keep], zc[keep], gx[keep], gy[keep]
+    z = 0.5 * (zk + zc - med)
+    sz = np.maximum(p.depth_sigma_rel * z * z, p.depth_sigma_floor_m)
+    gate = p.gate_depth_m
+    if how not in ("mean", "nocarry", "median"):  # the weighted fit's gate (depth_gate_sigmas)
+        gate = np.maximum(gate, p.depth_gate_sigmas * np.sqrt(2.0) * sz)
+    keep = np.abs(d - med) < gate
+    d, zk, zc, gx, gy, sz = d[keep], zk[keep], zc[keep], gx[keep], gy[keep], sz[keep]
     if how in ("mean", "nocarry"):
         return -float(np.mean(d))
     if how == "median":
         return -float(np.median(d))
-    z = 0.5 * (zk + zc - med)
-    sz = np.maximum(p.depth_sigma_rel * z * z, p.depth_sigma_floor_m)
     var = sz * sz + (gx * gx + gy * gy) / 6.0
     if how == "noslope":  # inverse variance of the sensor noise only
         var = sz * sz
