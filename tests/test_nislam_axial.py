@@ -1,7 +1,8 @@
-"""The key refinement (Eq. 19, kernels.refine_key): a matched frame's depth is
-carried to the sub-cell peak and gated before it is averaged into the key, so
-the key's depth does not drift on slanted surfaces or at occluding edges and
-the next frames' t_z (Eq. 18) does not inherit it."""
+"""The axial part of NI-SLAM's motion (t_z, Eq. 18; docs/nislam-error-budget.md,
+"The axial part, split"): the depth gate scaled with the sensor noise, every
+cell in far sparse views, the key refinement (Eq. 19, kernels.refine_key)
+carried to the sub-cell peak and gated, and a cell's depth from its front
+surface's mean (kernels.zbuffer_project)."""
 
 from __future__ import annotations
 
@@ -166,3 +167,23 @@ def test_far_sparse_view_takes_every_cell() -> None:
     _, near = _tz_errors(1.0, depth_all_cells_sd_m=0.0003)
     _, near_sampled = _tz_errors(1.0)
     assert (near == near_sampled).all()
+
+
+def test_front_surface_mean_is_not_biased_toward_the_camera() -> None:
+    """Eight noisy points of one surface (2 m, 10 mm noise) and one of a
+    surface behind (2.5 m) fall in one cell: the nearest point errs by
+    sigma E[min of 8 normals] (-14 mm); the front surface's mean (points
+    within 2 cm + 3 x 0.0015 z^2 of the nearest) by the noise over sqrt(8)."""
+    rng = np.random.default_rng(3)
+    near, far = [], []
+    for _ in range(200):
+        z = np.append(2.0 + rng.normal(0.0, 0.01, 8), 2.5).astype(np.float32)[None, :]
+        rays = np.zeros((1, 9, 3), np.float32)
+        rays[..., 2] = 1.0
+        m = np.array([[1.0, 0, 0, 0.5], [0, 1.0, 0, 0.5], [0, 0, 1.0, 0]], np.float32)
+        gray = np.zeros((1, 9), np.uint8)
+        near.append(kern.zbuffer_project(z, gray, rays, m, 1, 1, False)[0][0, 0] - 2.0)
+        far.append(kern.zbuffer_project(z, gray, rays, m, 1, 1, False, 0.02, 0.0045)[0][0, 0] - 2.0)
+    assert np.mean(near) < -0.012
+    assert abs(np.mean(far)) < 0.002
+    assert np.std(far) < 0.006  # ~10 mm / sqrt(8), the far surface left out
