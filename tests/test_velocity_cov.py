@@ -15,6 +15,7 @@ from test_fusion import DT, Attitude, truth
 from test_fusion_coverage import Drifting
 
 from onboard.core.messages import RgbdFrame
+from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.fused import FusedTracker
 from onboard.fusion.params import FusionParams
 from onboard.outputs.mavlink_feed import VisionFeed, diag_cov21, odometry_args
@@ -60,12 +61,12 @@ def test_velocity_variance_stays_bounded_and_honest_while_the_position_variance_
         assert pos_sd[-30:].mean() > 2.5 * pos_sd[30:60].mean()  # the absolute variance grows
         e, sd = displacement_errors(samples)
         covered.append(np.mean(np.abs(e) <= sd))
-        first.append(np.median(sd[:60]))
-        last.append(np.median(sd[-60:]))
+        first.append(np.sqrt(np.mean(sd[60:210] ** 2)))  # after the start-up, 5 s
+        last.append(np.sqrt(np.mean(sd[-150:] ** 2)))
     # With the two poses' summed absolute variances (the old formula) the sd
     # grew with the position's, ~3x, and covered ~100 % of the error.
-    assert max(b / a for a, b in zip(first, last)) < 1.3
-    assert 0.55 <= np.mean(covered) <= 0.8
+    assert max(b / a for a, b in zip(first, last)) < 1.15
+    assert 0.6 <= np.mean(covered) <= 0.76
 
 
 def test_the_feed_takes_the_trackers_displacement_covariance_else_the_sum() -> None:
@@ -113,3 +114,30 @@ def test_a_restart_still_sends_an_unknown_velocity() -> None:
     r, s = out[back + 1]
     assert len(r.displacement_cov) == 1 and np.all(np.isfinite(s.v_var_L))
     assert np.all(s.v_var_L < 1e-2)  # from the clone: (a few mm / 33 ms)^2, not the absolute variance
+
+
+def test_the_displacement_covariance_is_that_of_the_positions_put_out() -> None:
+    """Monte Carlo on the filter alone (white acceleration, one anchor): the
+    error of p_k minus the p_j put out at frame j has the covariance
+    `displacement_cov` says. A clone kept as a state (its estimate corrected by
+    the later updates, P's own blocks) says ~15 % less: that is the smoothed
+    p_j's, not the one the feed differences from."""
+    rng = np.random.default_rng(0)
+    dt, q, r_sd = 1.0 / 30.0, 25.0, 0.01
+    L = np.linalg.cholesky(q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]))
+    errors, claimed = [], []
+    for _ in range(2000):
+        f = AnchoredFilter(1, math.sqrt(q), n_frozen=1)
+        p, v = np.zeros(3), rng.normal(0.0, 0.5, 3)
+        f.start(0.0, p, 0.0, 0.5)
+        for k in range(1, 11):
+            w = L @ rng.normal(size=(2, 3))
+            p, v = p + v * dt + w[0], v + w[1]
+            f.predict(k * dt)
+            f.update(0, p + rng.normal(0.0, r_sd, 3), np.eye(3) * r_sd**2)  # anchor at the origin
+            if k == 3:
+                f.freeze(0)
+                p_j, p_j_true = f.p, p.copy()
+        errors.append((f.p - p_j) - (p - p_j_true))
+        claimed.append(np.trace(f.displacement_cov(0)) / 3.0)
+    assert abs(np.var(errors) / np.mean(claimed) - 1.0) < 0.1  # measured 0.95

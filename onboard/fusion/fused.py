@@ -87,10 +87,10 @@ class FusedTracker:
     def __init__(self, trackers: list[Tracker], params: FusionParams = FusionParams()) -> None:
         self.p = params
         self.links = [Link(i, t, anchor_slot=2 * i) for i, t in enumerate(trackers)]
-        n_keyed = 2 * len(trackers) + params.key_clones
-        self.filter = AnchoredFilter(n_keyed + params.velocity_clones, params.accel_sd_m_s2)
-        self._free = list(range(2 * len(trackers), n_keyed))
-        self._outputs = OutputClones(n_keyed, params.velocity_clones)  # the velocity's covariance
+        self.filter = AnchoredFilter(2 * len(trackers) + params.key_clones, params.accel_sd_m_s2,
+                                     params.velocity_clones)
+        self._free = list(range(2 * len(trackers), 2 * len(trackers) + params.key_clones))
+        self._outputs = OutputClones()  # the velocity's covariance
         self._started = False
         self._lost = False
         self._last_update_s: float | None = None
@@ -357,8 +357,7 @@ class FusedTracker:
         if self._started:
             self.reset_counter += 1
             log.info("t=%.3f: fused pose back after a lost spell: reset %d", t_s, self.reset_counter)
-        self.filter.start(t_s, p0, 0.0, self.p.initial_speed_sd_m_s)
-        self._outputs.clear()
+        self.filter.start(t_s, p0, 0.0, self.p.initial_speed_sd_m_s)  # (drops the frozen outputs)
         self._started, self._lost = True, False
         self._last_update_s = t_s
         for link in self.links:
