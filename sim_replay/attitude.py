@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, dense_enough, fitted_delta
 from onboard.core.rotations import quat_slerp, quat_to_matrix
 from onboard.core.trajectory import Trajectory
 from sim_replay.tum import Sequence
@@ -37,9 +38,12 @@ class AttitudeSeries:
     scipy Rotation objects per call.
     """
 
-    def __init__(self, trajectory: Trajectory, max_gap_s: float = DEFAULT_MAX_GAP_S) -> None:
+    def __init__(self, trajectory: Trajectory, max_gap_s: float = DEFAULT_MAX_GAP_S,
+                 smoothing_s: float = DEFAULT_HALF_S) -> None:
+        """`smoothing_s`: as onboard.core.attitude.AttitudeBuffer's."""
         self.trajectory = trajectory
         self.max_gap_s = float(max_gap_s)
+        self.smoothing_s = float(smoothing_s)
         self._t_s: list[float] = [float(t) for t in trajectory.t_s]
         self._q_xyzw: list[tuple[float, float, float, float]] = [
             (float(q[0]), float(q[1]), float(q[2]), float(q[3])) for q in trajectory.q_xyzw
@@ -53,23 +57,34 @@ class AttitudeSeries:
         return (self._t_s[0], self._t_s[-1]) if self._t_s else None
 
     def rotation_at(self, t_s: float) -> np.ndarray | None:
-        """R_W_C (3x3) at `t_s`, slerped between the two neighbouring samples;
+        """R_W_C (3x3) at `t_s`, slerped between the two neighbouring samples
+        or fitted to those around it (`smoothing_s`, as the live buffer does);
         None outside the covered span or inside a gap longer than `max_gap_s`."""
-        ts = self._t_s
-        n = len(ts)
-        if n == 0:
+        q = self._quat_at(t_s)
+        if q is None:
             return None
-        if not (ts[0] <= t_s <= ts[-1]):  # also rejects NaN
+        r = quat_to_matrix(q)
+        if self.smoothing_s <= 0.0:
+            return r
+        i0 = bisect.bisect_left(self._t_s, t_s - self.smoothing_s)
+        i1 = bisect.bisect_right(self._t_s, t_s + self.smoothing_s)
+        tau = np.asarray(self._t_s[i0:i1], dtype=np.float64) - t_s
+        if not dense_enough(tau):
+            return r
+        return r @ fitted_delta(tau, np.asarray(q), np.asarray(self._q_xyzw[i0:i1]))
+
+    def _quat_at(self, t_s: float) -> tuple[float, float, float, float] | None:
+        ts = self._t_s
+        if not ts or not (ts[0] <= t_s <= ts[-1]):  # also rejects NaN
             return None
         i = bisect.bisect_right(ts, t_s)  # 1 <= i <= n here
         if ts[i - 1] == t_s:
             # A sample is valid at its own stamp even when a long gap follows it.
-            return quat_to_matrix(self._q_xyzw[i - 1])
+            return self._q_xyzw[i - 1]
         t0, t1 = ts[i - 1], ts[i]
         if t1 - t0 > self.max_gap_s + _GAP_EPS_S:
             return None
-        w = (t_s - t0) / (t1 - t0)
-        return quat_to_matrix(quat_slerp(self._q_xyzw[i - 1], self._q_xyzw[i], w))
+        return quat_slerp(self._q_xyzw[i - 1], self._q_xyzw[i], (t_s - t0) / (t1 - t0))
 
     def rotations_at(self, t_s) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised `rotation_at`: (R_W_C (M,3,3), valid (M,) bool); invalid rows are NaN."""
@@ -178,7 +193,8 @@ def perturb_samples(t_s, q_true_xyzw, model: AttitudeErrorModel) -> np.ndarray:
 
 
 def attitude_for_replay(
-    seq: Sequence, model: AttitudeErrorModel, max_gap_s: float = DEFAULT_MAX_GAP_S
+    seq: Sequence, model: AttitudeErrorModel, max_gap_s: float = DEFAULT_MAX_GAP_S,
+    smoothing_s: float = DEFAULT_HALF_S,
 ) -> tuple[AttitudeSeries, str]:
     """The attitude a replay feeds the tracker, and a label saying where it came from.
 
@@ -207,7 +223,7 @@ def attitude_for_replay(
         )
     if len(measured) == 0:
         raise NislamError(f"{seq.path}: {source} gives no attitude sample at any frame time")
-    return AttitudeSeries(measured, max_gap_s), f"{source}; {model.describe()}"
+    return AttitudeSeries(measured, max_gap_s, smoothing_s), f"{source}; {model.describe()}"
 
 
 def stated_noise_deg(seq_dir: Path | str) -> float | None:

@@ -33,6 +33,7 @@ import numpy as np
 
 from onboard import NislamError
 from onboard.core.attitude import AttitudeBuffer, AttitudeSample
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S
 from onboard.core.camera import CameraModel
 from onboard.core.messages import RgbdFrame
 from onboard.core.rotations import quat_to_matrix
@@ -295,6 +296,7 @@ def open_replay(
     stamp_window_s: float = DEFAULT_WINDOW_S,
     mono_ns: Callable[[], int] = time.monotonic_ns,
     loop_s: float | None = None,
+    attitude_smoothing_s: float = DEFAULT_HALF_S,
 ) -> Replay:
     """Replay drivers for a TUM-layout sequence; attitude within PREROLL_S
     before the first frame to TAIL_S after the last is played. With `loop_s`:
@@ -318,7 +320,7 @@ def open_replay(
         R_B_C = np.eye(3)
     else:
         traj, label, R_B_C = None, "none", quat_to_matrix(tuple(seq.camera.q_B_C_xyzw))
-    buffer = AttitudeBuffer(R_B_C, buffer_capacity, max_gap_s)
+    buffer = AttitudeBuffer(R_B_C, buffer_capacity, max_gap_s, smoothing_s=attitude_smoothing_s)
     attitude = None
     if traj is not None:
         keep = (traj.t_s >= t_first - PREROLL_S) & (traj.t_s <= t_last + TAIL_S)

@@ -6,6 +6,7 @@ as before, never by timing: the results stay identical.
   input) only on frames whose rate difference g lets the estimate use it; on
   a steady turn it is never measured, and the poses and the estimate are those
   of measuring it on every frame.
+- The residual fit itself runs after the pose: the pose does not use it.
 - A key made inside track() (the first, a restart, after a failed match) is
   matched at once, but its colour (for the map only) is gathered after the
   pose: the clouds handed out are those of gathering it in place.
@@ -88,6 +89,48 @@ def test_the_residual_is_fitted_only_when_the_calibration_can_use_it(scene, monk
         assert np.array_equal([a.psr], [b.psr], equal_nan=True)
         assert (a.keyframe_id, a.new_keyframe) == (b.keyframe_id, b.new_keyframe)
         assert a.attitude_offset_s == b.attitude_offset_s
+
+
+def _residual_fits(scene: Scene, in_place: bool, monkeypatch) -> tuple[list, tuple, list[bool]]:
+    """The pan speeding up, tracked with finish_frame() after each frame;
+    (results, the calibration's state, for each residual fit whether it ran
+    inside track()). `in_place`: every queued job runs where it is queued."""
+    inside = [False]
+    where: list[bool] = []
+    fit = calibration.RotationResidual.residual
+    with monkeypatch.context() as m:
+        m.setattr(calibration.RotationResidual, "residual",
+                  lambda self, *a: (where.append(inside[0]), fit(self, *a))[1])
+        if in_place:
+            m.setattr(deferred.Deferred, "add", lambda self, target, job: job())
+        tracker = NislamTracker(INTR, _params(calibrate_time_offset=True, psr_keyframe=20.0))
+        att = PanAttitude(lambda t: 150.0 * t * t)
+        results = []
+        for k in range(13):
+            t = round(k * DT, 9)
+            bgr, depth = scene.render(att.rotation_at(t), np.array([0.002 * k, 0.0, 0.0]))
+            inside[0] = True
+            results.append(tracker.track(RgbdFrame(t, bgr, depth), att))
+            inside[0] = False
+            tracker.finish_frame()
+        c = tracker._calib
+        return results, (c.n, c.num, c.den, c.offset_s), where
+
+
+def test_the_residual_fit_runs_after_the_pose(scene, monkeypatch):
+    """The pose does not use the residual rotation (it moves the offset for
+    the next frames' attitude lookups): fitted after the pose, the poses, the
+    calibration and the residuals reported are those of fitting in place."""
+    ref, ref_calib, ref_where = _residual_fits(scene, True, monkeypatch)
+    got, calib, where = _residual_fits(scene, False, monkeypatch)
+    assert ref_where and all(ref_where)  # in place: on the pose's path
+    assert len(where) == len(ref_where) and not any(where)
+    assert calib == ref_calib and calib[0] > 0
+    assert [r.attitude_offset_s for r in got] == [r.attitude_offset_s for r in ref]
+    for a, b in zip(ref, got, strict=True):
+        assert np.array_equal(a.p_W_m, b.p_W_m) and a.keyframe_id == b.keyframe_id
+        assert np.array_equal(a.rotation_residual_rad, b.rotation_residual_rad)
+    assert any(np.any(r.rotation_residual_rad != 0) for r in got)
 
 
 def _clouds(scene: Scene, in_place: bool, monkeypatch) -> tuple[list, list, list[bool]]:

@@ -64,6 +64,9 @@ def test_unit_keeps_serial_usb_and_network_open() -> None:
     assert "char-usb_device" in allowed and "char-ttyACM" in allowed
     families = values["RestrictAddressFamilies"][0].split()
     assert {"AF_INET", "AF_INET6", "AF_UNIX", "AF_NETLINK"} <= set(families)
+    # the loop's latency: real-time priority set by systemd, below IRQ threads
+    assert values["CPUSchedulingPolicy"] == ["fifo"]
+    assert 1 <= int(values["CPUSchedulingPriority"][0]) < 50
     rule = (REPO / "systemd" / "80-nislam-oakd.rules").read_text()
     assert 'ATTRS{idVendor}=="03e7"' in rule
 

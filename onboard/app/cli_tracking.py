@@ -267,7 +267,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         sources = hardware_sources(cfg)
     with stop_on_signals() as stop:
         service = Service(cfg, sources, stop, seconds=seconds, notifier=Notifier(),
-                          emit=lambda line: print(line, flush=True), out_dir=out_dir)
+                          emit=lambda line: print(line, flush=True), out_dir=out_dir,
+                          realtime=True)
         result = service.run()
     print("\n".join(result.summary_lines()), flush=True)
     return 0

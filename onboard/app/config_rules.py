@@ -319,6 +319,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "ahrs.buffer_samples": Range(2, 1_000_000),
     "ahrs.max_age_s": DURATION,
     "ahrs.max_gap_s": DURATION,
+    "ahrs.smoothing_s": Range(0.0, 0.1),  # wider: the fit would flatten the vehicle's own motion
     "myahrs.port": Check(lambda v: None if v.strip() else "must not be empty"),
     "myahrs.baud": BAUD,
     "myahrs.divider": Range(1, 100),
@@ -358,6 +359,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "service.attitude_wait_s": Range(0.0, 1.0),
     "service.stats_period_s": DURATION,
     "service.replay_speed": Range(0.01, 100.0),
+    "service.realtime_priority": Range(0, 49),  # below the kernel's IRQ threads (50)
     # nislam run --sim-follow
     "sim_follow.request": Choice(SIM_FOLLOW_REQUESTS),
     "sim_follow.state_rate_hz": Range(1.0, 1000.0),

@@ -51,6 +51,7 @@ class AhrsConfig:
     buffer_samples: int = 1024  # samples kept (10 s at 100 Hz)
     max_age_s: float = 0.25  # an AHRS this far behind a frame is not waited for (silent)
     max_gap_s: float = 0.1  # no interpolation across a longer gap between samples
+    smoothing_s: float = 0.04  # attitude at a time: quadratic fit over +- this (core/attitude_smoothing.py)
 
 
 @dataclass(frozen=True)
@@ -122,6 +123,7 @@ class ServiceConfig:
     attitude_wait_s: float = 0.05  # longest wait for the AHRS to reach a frame's capture time
     stats_period_s: float = 5.0  # one statistics line (and systemd STATUS) this often
     replay_speed: float = 1.0  # --replay / --sim pace: 1 = real time
+    realtime_priority: int = 10  # SCHED_FIFO priority once the first frame is tracked (0: normal)
 
 
 SIM_FOLLOW_REQUESTS = ("SIM_STATE", "HIL_STATE_QUATERNION", "none")

@@ -38,7 +38,8 @@ def make_attitude_buffer(cfg: Config, check_stamps: bool = True) -> AttitudeBuff
     label = {"myahrs": "myAHRS+", "autopilot": "autopilot attitude",
              "oak_imu": "OAK IMU"}.get(a.source, "AHRS")
     return AttitudeBuffer(R_B_C, a.buffer_samples, a.max_gap_s,
-                          now_ns=time.monotonic_ns if check_stamps else None, label=label)
+                          now_ns=time.monotonic_ns if check_stamps else None, label=label,
+                          smoothing_s=a.smoothing_s)
 
 
 def oak_settings(cfg: Config, imu: bool) -> OakSettings:

@@ -58,6 +58,7 @@ from onboard.app.replay import (
 )
 from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.run_files import FileWrites, LiveTrajectory
+from onboard.app.priority import raise_to_realtime
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
 from onboard.core.camera import CameraIntrinsics
@@ -98,7 +99,10 @@ class Service:
         emit: Emit | None = None,
         out_dir: Path | None = None,
         tracker_factory: TrackerFactory = make_tracker,
+        realtime: bool = False,
     ) -> None:
+        """`realtime`: raise the process to `[service] realtime_priority` once
+        tracking (a process-wide setting: only the program's entry point asks)."""
         self.cfg = cfg
         self.sc = cfg.service
         self.sources = sources
@@ -108,6 +112,7 @@ class Service:
         self.emit = emit or (lambda line: log.info("%s", line))
         self.out_dir = out_dir
         self.tracker_factory = tracker_factory
+        self.realtime = realtime
         self.stats = LoopStats()
         # Trusted poses are kept only to be scored or written: a service on
         # hardware without --out (or a looped soak) keeps nothing that grows.
@@ -125,6 +130,7 @@ class Service:
             self.sc.frame_timeout_s, self.sc.degraded_gap_s, cfg.mavlink.degraded_quality,
             self.sc.start_grace_s, self.sc.recover_s), time.monotonic(), sources.devices)
         self.ready = False
+        self.scheduling = "normal"  # what the process runs at (onboard.app.priority)
         self.gate = PoseGate()  # no pose the motion model cannot explain goes out trusted
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
@@ -268,6 +274,8 @@ class Service:
                          report.state is Health.TRACKING)
         if not self.ready:
             self.ready = True
+            if self.realtime:
+                self.scheduling = raise_to_realtime(self.sc.realtime_priority)
             self.notifier.ready(f"tracking with {tracker.name}: first frame in")
             log.info("ready: first frame tracked (%s)", report.state.value)
         self._maybe_stats(now)
@@ -409,7 +417,8 @@ class Service:
         if self.sources.source_stats is not None:
             metrics["source_stats"] = self.sources.source_stats()
         self.timing.finish()
-        metrics["latency_lines"] = self.timing.summary_lines(self._output_stats)
+        metrics["latency_lines"] = [*self.timing.summary_lines(self._output_stats),
+                                    f"scheduling  {self.scheduling} (onboard/app/priority.py)"]
         if self.sources.host_mapping is not None:
             # The MAVLink feed's time_usec is on the host's monotonic clock; the
             # trajectories keep the recording's stamps: how one maps onto the other.
@@ -448,6 +457,7 @@ class Service:
                     "keyframes_published": None if zs is None else zs["keyframes_published"],
                     "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
                     **self.timing.run_fields(self._frames_offered(), s.resets, self._output_stats),
+                    "scheduling": self.scheduling,
                     "outputs": self._output_stats,
                 })
         notes = metrics["output_notes"]

@@ -4,8 +4,9 @@ Drivers turn what their sensor reports (the AHRS axes A in the sensor's world)
 into `AttitudeSample`s of the vehicle body B in the AHRS world W (gravity
 aligned, z down) with `to_body_sample`, using the AHRS-to-body rotation from
 config, and push them into an `AttitudeBuffer`. The buffer implements
-`onboard.core.messages.AttitudeSource`: `rotation_at(t_s)` slerps between the two
-samples around `t_s` and returns R_W_C = R_W_B(t) R_B_C with the camera
+`onboard.core.messages.AttitudeSource`: `rotation_at(t_s)` fits the samples
+within `smoothing_s` of `t_s` (onboard.core.attitude_smoothing) or slerps
+between the two around it, and returns R_W_C = R_W_B(t) R_B_C with the camera
 mount, or None ("no attitude") when the query lies outside the buffered span
 or the two samples around it are further apart than `max_gap_s` (an outage).
 A frame captured while the AHRS was talking keeps its attitude however late
@@ -39,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.device_state import DeviceState, State
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, dense_enough, fitted_delta
 from onboard.core.rotations import (
     Quat,
     quat_conj,
@@ -101,12 +103,16 @@ class AttitudeBuffer:
         now_ns: Callable[[], int] | None = None,
         jump_s: float = 2.0,
         label: str = "AHRS",
+        smoothing_s: float = DEFAULT_HALF_S,
     ) -> None:
+        """`smoothing_s`: half window of the local fit rotation_at makes where
+        the samples are dense (onboard.core.attitude_smoothing); 0: the slerp."""
         if capacity < 2:
             raise ValueError("attitude buffer capacity must be >= 2")
         self.R_B_C = np.eye(3) if R_B_C is None else np.asarray(R_B_C, dtype=np.float64)
         self.capacity = int(capacity)
         self.max_gap_s = float(max_gap_s)
+        self.smoothing_s = float(smoothing_s)
         self._lock = threading.Lock()
         self._t_s: list[float] = []
         self._samples: list[AttitudeSample] = []
@@ -154,7 +160,15 @@ class AttitudeBuffer:
     def rotation_at(self, t_s: float) -> np.ndarray | None:
         """R_W_C (3x3) at `t_s`, or None: no attitude there (see module doc)."""
         r_w_b = self.body_rotation_at(t_s)
-        return None if r_w_b is None else r_w_b @ self.R_B_C
+        if r_w_b is None or self.smoothing_s <= 0.0:
+            return None if r_w_b is None else r_w_b @ self.R_B_C
+        ts, qs = self._body_quats_between(t_s - self.smoothing_s, t_s + self.smoothing_s)
+        if not dense_enough(ts - t_s):
+            return r_w_b @ self.R_B_C
+        q = self.body_quat_at(t_s)
+        assert q is not None  # r_w_b came from it
+        # The fit in the body's tangent space, then the mount: R_W_B(t) d R_B_C.
+        return r_w_b @ fitted_delta(ts - t_s, np.asarray(q), qs) @ self.R_B_C
 
     def body_rotation_at(self, t_s: float) -> np.ndarray | None:
         q = self.body_quat_at(t_s)
@@ -178,6 +192,16 @@ class AttitudeBuffer:
         if t1 - t0 > self.max_gap_s:
             return None
         return quat_slerp(q0, q1, (t_s - t0) / (t1 - t0))
+
+    def _body_quats_between(self, t0_s: float, t1_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Stamps (N,) and q_W_B xyzw (N, 4) of the samples stamped in [t0, t1]."""
+        with self._lock:
+            lo = max(0, len(self._t_s) - self.capacity)
+            i0 = bisect.bisect_left(self._t_s, t0_s, lo)
+            i1 = bisect.bisect_right(self._t_s, t1_s, lo)
+            ts = self._t_s[i0:i1]
+            qs = [s.q_W_B_xyzw for s in self._samples[i0:i1]]
+        return np.asarray(ts, dtype=np.float64), np.asarray(qs, dtype=np.float64).reshape(-1, 4)
 
     def newest(self) -> AttitudeSample | None:
         with self._lock:

@@ -102,8 +102,8 @@ class TrackResult:
     shift_cells: tuple[float, float]
     tz_m: float
     res_m: float
-    rotation_residual_rad: np.ndarray  # (3,) in key axes; z is not observed (0)
-    attitude_offset_s: float
+    rotation_residual_rad: np.ndarray  # (3,) in key axes; z is not observed (0); NI-SLAM fills it after the pose (finish_frame)
+    attitude_offset_s: float  # the attitude time offset the frame was tracked with [s]
     matched_cells: int
     finished_keyframes: tuple[KeyframeCloud, ...] = ()
     keyframe_reused: bool = False  # the frame switched to a key kept from before (not a new one)

@@ -110,6 +110,11 @@ class NislamTracker:
     # ------------------------------------------------------------------ API
     @property
     def attitude_offset_s(self) -> float:
+        return self._offset_s()
+
+    def _offset_s(self) -> float:
+        """The calibrated offset, after a residual fit still queued (_match)."""
+        self._deferred.run(self._calib)
         return self._calib.offset_s
 
     def finish_frame(self) -> None:
@@ -129,14 +134,15 @@ class NislamTracker:
         the rotation in between (at 60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m).
         The result keeps the frame's stamp and its colour-time attitude."""
         self._deferred.run()  # the last frame's, if finish_frame() was not called
-        t_att = frame.t_s + self._calib.offset_s
+        offset_s = self._calib.offset_s  # the one this frame is tracked with (and reports)
+        t_att = frame.t_s + offset_s
         r_cur = attitude.rotation_at(t_att)
         if r_cur is None or not np.all(np.isfinite(r_cur)):
             return self._lost_result(frame.t_s, "no attitude")
         t_g, r_g, r_cd = frame.t_s, r_cur, None
         if self.p.depth_time_compensation and frame.depth_t_s is not None \
                 and abs(frame.depth_t_s - frame.t_s) > 1e-4:
-            r_d = attitude.rotation_at(frame.depth_t_s + self._calib.offset_s)
+            r_d = attitude.rotation_at(frame.depth_t_s + offset_s)
             if r_d is None or not np.all(np.isfinite(r_d)):
                 return self._lost_result(frame.t_s, "no attitude")
             t_g, r_g, r_cd = frame.depth_t_s, r_d, r_cur.T @ r_d
@@ -156,7 +162,7 @@ class NislamTracker:
             return self._lost_result(frame.t_s, "too few depth pixels")
         if self._key is None or self._lost or self._coasted_too_long(t_g):
             return self._restart(frame.t_s, r_cur, t_g, cloud, r_g)
-        t_att = t_g + self._calib.offset_s
+        t_att = t_g + offset_s
         key = self._key
         finished: list[KeyframeCloud] = []
         outcome = self._match(key, cloud, t_g, r_g, attitude, t_att)
@@ -214,7 +220,7 @@ class NislamTracker:
             tz_m=outcome.depth.tz_m,
             res_m=key.img.res_m,
             rotation_residual_rad=outcome.theta_rad,
-            attitude_offset_s=self._calib.offset_s,
+            attitude_offset_s=offset_s,
             matched_cells=outcome.depth.matched,
             finished_keyframes=tuple(finished),
             keyframe_reused=reused,
@@ -259,10 +265,11 @@ class NislamTracker:
         """`link`: a second measurement of a frame already posed (a key link,
         onboard.nislam.keymap): the key's motion prior, refinement and the
         time-offset calibration are left as they are."""
-        self._deferred.run(key)  # its refinement by an earlier match
         # The key's attitude is looked up again at the current offset estimate,
-        # so key and frame share one clock while the offset settles.
-        r_key = attitude.rotation_at(key.t_s + self._calib.offset_s)
+        # so key and frame share one clock while the offset settles (a residual
+        # fit of an earlier match in this frame first, then its refinement).
+        r_key = attitude.rotation_at(key.t_s + self._offset_s())
+        self._deferred.run(key)  # its refinement by an earlier match
         r_key = key.R_W_C if r_key is None else r_key
         r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
         img = project(cloud, r_rel, self.shape, key.img.res_m)
@@ -292,21 +299,29 @@ class NislamTracker:
         if key.layers is not None and self._frame_count % every == 0:
             # The residual fit (a sixth of a match) only when the estimate can
             # use it: with the key's and the frame's rates alike (g ~ 0: a
-            # hover, a steady turn) it says nothing about time, and a frame's
-            # pose does not wait for a measurement that would be left out.
+            # hover, a steady turn) it says nothing about time. The pose does
+            # not use it either (it moves the offset for the next lookups):
+            # queued before the refinement, which changes the key layers it reads.
             g = self._rate_difference(key, r_rel, attitude, t_att)
             if g is not None and self._calib.informative(g[:2]):
-                theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), depth.tz_m, self.p)
-                if theta is not None:
-                    theta_img = theta
-                    self._calib.update(g[:2], theta[:2])
+                self._deferred.add(self._calib, lambda: self._fit_residual(
+                    key, img, peak, depth.tz_m, g, theta_img))
         if peak.psr > self.p.psr_refine:  # for the next frames: after the pose
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         return self._pose(key, peak, depth, theta_img)
 
+    def _fit_residual(self, key: Key, img: AxonometricImage, peak: Peak, tz_m: float,
+                      g: np.ndarray, theta_out: np.ndarray) -> None:
+        """The colour layers' residual rotation into the offset calibration;
+        written into the frame's `rotation_residual_rad` (`theta_out`) too."""
+        theta = key.layers.residual(img, (peak.du_cells, peak.dv_cells), tz_m, self.p)
+        if theta is not None:
+            theta_out[:] = theta
+            self._calib.update(g[:2], theta[:2])
+
     @staticmethod
-    def _pose(key: Key, peak: Peak, depth: DepthFit, theta_img: np.ndarray) -> _Match:
+    def _pose(key: Key, peak, depth: DepthFit, theta_img: np.ndarray) -> _Match:
         # Content moves opposite to the camera (ref. §9): t = -d s.
         s = key.img.res_m
         t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
@@ -368,7 +383,7 @@ class NislamTracker:
     ) -> np.ndarray | None:
         """g = omega_key - R_rel omega_cur in key axes (rad/s), see OffsetCalibration."""
         w_cur = body_rate(attitude, t_att, self.p.rate_half_window_s)
-        w_key = body_rate(attitude, key.t_s + self._calib.offset_s, self.p.rate_half_window_s)
+        w_key = body_rate(attitude, key.t_s + self._offset_s(), self.p.rate_half_window_s)
         if w_cur is None or w_key is None:
             return None
         return w_key - r_rel @ w_cur
@@ -400,7 +415,7 @@ class NislamTracker:
         finished = self._new_key_from(self._prev)
         self._last_trusted_p = p_W
         return restart_result(t_s, p_W, r_cur, self._key, self._reset_counter,
-                              self._calib.offset_s, tuple(finished))
+                              self._offset_s(), tuple(finished))
 
     def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
@@ -464,5 +479,5 @@ class NislamTracker:
         key (self._lost); a frame without attitude or depth is skipped and the
         next one is matched against the same key, its search window widened
         by the time passed (`max_coast_s` bounds how long)."""
-        return lost_result(t_s, reason, self._key, self._reset_counter, self._calib.offset_s,
+        return lost_result(t_s, reason, self._key, self._reset_counter, self._offset_s(),
                            finished)
