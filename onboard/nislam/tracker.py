@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core import attitude_smoothing
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
 from onboard.nislam import kernels as kern
@@ -106,6 +107,7 @@ class NislamTracker:
         )
         self._deferred = Deferred()  # steps 5 and 6, for after the pose (deferred.py)
         kern.warm_up()  # compile before the first frame, not during it
+        attitude_smoothing.warm_up()  # the attitude's local fit, which rotation_at runs
 
     # ------------------------------------------------------------------ API
     @property
