@@ -229,6 +229,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.min_sd_m": POSITIVE,
     "fusion.max_coast_s": NON_NEGATIVE,
     "fusion.axes_gain": FRACTION,
+    "fusion.velocity_clones": NON_NEGATIVE,
     "fusion.quality_sd_m": POSITIVE,
     "fastorb.clahe_clip_limit": POSITIVE,
     "fastorb.rolling_shutter_readout_s": Range(lo=-1.0, hi=0.1),  # -1: the camera's

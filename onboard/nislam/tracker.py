@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core import attitude_smoothing
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
 from onboard.nislam import kernels as kern
@@ -109,6 +110,7 @@ class NislamTracker:
         self._front = (params.depth_front_mean_m, 3.0 * params.depth_sigma_rel
                        if params.depth_front_mean_m > 0 else 0.0)
         kern.warm_up()  # compile before the first frame, not during it
+        attitude_smoothing.warm_up()  # the attitude's local fit, which rotation_at runs
 
     # ------------------------------------------------------------------ API
     @property
