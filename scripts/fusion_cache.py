@@ -125,7 +125,7 @@ class _TruthFilter(AnchoredFilter):
     measurement error against the true motion since the clone's frame."""
 
     def __init__(self, base: AnchoredFilter, p_true: np.ndarray) -> None:
-        super().__init__((base.n - 6) // 3, 0.0)
+        super().__init__((base.n - 6) // 3, 0.0, base.V.shape[0])
         self.q, self.p_true, self.k = base.q, p_true, 0
         self.truth: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
         self.log: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, int]] = []

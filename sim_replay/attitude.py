@@ -48,6 +48,8 @@ class AttitudeSeries:
         self._q_xyzw: list[tuple[float, float, float, float]] = [
             (float(q[0]), float(q[1]), float(q[2]), float(q[3])) for q in trajectory.q_xyzw
         ]
+        self._t_arr = np.asarray(self._t_s, dtype=np.float64)  # the same, for the local fit
+        self._q_arr = np.asarray(self._q_xyzw, dtype=np.float64).reshape(-1, 4)
 
     def __len__(self) -> int:
         return len(self._t_s)
@@ -66,12 +68,13 @@ class AttitudeSeries:
         r = quat_to_matrix(q)
         if self.smoothing_s <= 0.0:
             return r
-        i0 = bisect.bisect_left(self._t_s, t_s - self.smoothing_s)
-        i1 = bisect.bisect_right(self._t_s, t_s + self.smoothing_s)
-        tau = np.asarray(self._t_s[i0:i1], dtype=np.float64) - t_s
-        if not dense_enough(tau):
+        ts = self._t_s
+        i0 = bisect.bisect_left(ts, t_s - self.smoothing_s)
+        i1 = bisect.bisect_right(ts, t_s + self.smoothing_s)
+        if not dense_enough(i1 - i0, bisect.bisect_left(ts, t_s, i0, i1) - i0,
+                            i1 - bisect.bisect_right(ts, t_s, i0, i1)):
             return r
-        return r @ fitted_delta(tau, np.asarray(q), np.asarray(self._q_xyzw[i0:i1]))
+        return r @ fitted_delta(self._t_arr[i0:i1] - t_s, np.asarray(q), self._q_arr[i0:i1])
 
     def _quat_at(self, t_s: float) -> tuple[float, float, float, float] | None:
         ts = self._t_s

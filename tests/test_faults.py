@@ -110,7 +110,7 @@ def test_every_fault_is_in_the_copy_exactly_as_specified(clean, damaged):
     dst, manifest, before = damaged
     assert _digest(clean) == before  # the source is only read
     src_rgb, dst_rgb = _lines(clean / "rgb.txt"), _lines(dst / "rgb.txt")
-    src_depth, dst_depth = _lines(clean / "depth.txt"), _lines(dst / "depth.txt")
+    dst_depth = _lines(dst / "depth.txt")
     src_att = np.loadtxt(clean / "attitude.txt")
     dst_att = np.genfromtxt(dst / "attitude.txt")
     jump = _fault(manifest, "clock-jump")

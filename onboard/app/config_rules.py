@@ -206,6 +206,9 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.gate_gray": POSITIVE,
     "nislam.gate_depth_m": POSITIVE,
     "nislam.depth_tilt_max_rad": NON_NEGATIVE,
+    "nislam.depth_gate_sigmas": NON_NEGATIVE,
+    "nislam.depth_all_cells_sd_m": NON_NEGATIVE,
+    "nislam.depth_front_mean_m": NON_NEGATIVE,
     "nislam.time_offset_s": ANY,
     "nislam.time_offset_max_s": NON_NEGATIVE,
     "nislam.rolling_shutter_readout_s": Range(lo=0.0, hi=0.1),  # rows read out within a frame
@@ -226,6 +229,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.min_sd_m": POSITIVE,
     "fusion.max_coast_s": NON_NEGATIVE,
     "fusion.axes_gain": FRACTION,
+    "fusion.velocity_clones": NON_NEGATIVE,
     "fusion.quality_sd_m": POSITIVE,
     "fastorb.clahe_clip_limit": POSITIVE,
     "fastorb.rolling_shutter_readout_s": Range(lo=-1.0, hi=0.1),  # -1: the camera's

@@ -159,16 +159,18 @@ class AttitudeBuffer:
 
     def rotation_at(self, t_s: float) -> np.ndarray | None:
         """R_W_C (3x3) at `t_s`, or None: no attitude there (see module doc)."""
-        r_w_b = self.body_rotation_at(t_s)
-        if r_w_b is None or self.smoothing_s <= 0.0:
-            return None if r_w_b is None else r_w_b @ self.R_B_C
-        ts, qs = self._body_quats_between(t_s - self.smoothing_s, t_s + self.smoothing_s)
-        if not dense_enough(ts - t_s):
-            return r_w_b @ self.R_B_C
         q = self.body_quat_at(t_s)
-        assert q is not None  # r_w_b came from it
-        # The fit in the body's tangent space, then the mount: R_W_B(t) d R_B_C.
-        return r_w_b @ fitted_delta(ts - t_s, np.asarray(q), qs) @ self.R_B_C
+        if q is None:
+            return None
+        r_w_b = quat_to_matrix(q)
+        if self.smoothing_s > 0.0:
+            ts, qs = self._body_quats_between(t_s - self.smoothing_s, t_s + self.smoothing_s)
+            if dense_enough(len(ts), bisect.bisect_left(ts, t_s),
+                            len(ts) - bisect.bisect_right(ts, t_s)):
+                # fitted in the body's tangent space, then the mount: R_W_B(t) d R_B_C
+                tau = np.asarray(ts, dtype=np.float64) - t_s
+                r_w_b = r_w_b @ fitted_delta(tau, np.asarray(q), qs)
+        return r_w_b @ self.R_B_C
 
     def body_rotation_at(self, t_s: float) -> np.ndarray | None:
         q = self.body_quat_at(t_s)
@@ -193,7 +195,7 @@ class AttitudeBuffer:
             return None
         return quat_slerp(q0, q1, (t_s - t0) / (t1 - t0))
 
-    def _body_quats_between(self, t0_s: float, t1_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _body_quats_between(self, t0_s: float, t1_s: float) -> tuple[list[float], np.ndarray]:
         """Stamps (N,) and q_W_B xyzw (N, 4) of the samples stamped in [t0, t1]."""
         with self._lock:
             lo = max(0, len(self._t_s) - self.capacity)
@@ -201,7 +203,7 @@ class AttitudeBuffer:
             i1 = bisect.bisect_right(self._t_s, t1_s, lo)
             ts = self._t_s[i0:i1]
             qs = [s.q_W_B_xyzw for s in self._samples[i0:i1]]
-        return np.asarray(ts, dtype=np.float64), np.asarray(qs, dtype=np.float64).reshape(-1, 4)
+        return ts, np.asarray(qs, dtype=np.float64).reshape(-1, 4)
 
     def newest(self) -> AttitudeSample | None:
         with self._lock:

@@ -25,40 +25,64 @@ side); nothing waits for more.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
+from numba import njit
 
 DEFAULT_HALF_S = 0.04
 MIN_SAMPLES = 5
 MIN_EACH_SIDE = 2
 
 
-def dense_enough(tau_s: np.ndarray) -> bool:
-    """Samples at `tau_s` (s from the frame): enough to average, not interpolate."""
-    return (len(tau_s) >= MIN_SAMPLES and np.count_nonzero(tau_s < 0) >= MIN_EACH_SIDE
-            and np.count_nonzero(tau_s > 0) >= MIN_EACH_SIDE)
+def dense_enough(n_in: int, n_before: int, n_after: int) -> bool:
+    """`n_in` samples in the window, `n_before` / `n_after` of them stamped
+    before / after the frame: enough to average, not interpolate."""
+    return n_in >= MIN_SAMPLES and n_before >= MIN_EACH_SIDE and n_after >= MIN_EACH_SIDE
 
 
-def _rotvecs(q0: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """log(q0^-1 q_i) (N, 3) for unit quaternions xyzw (the shorter way)."""
+@njit(cache=True, nogil=True)
+def _fitted_delta(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> np.ndarray:
+    """One pass: rotation vectors log(q0^-1 q_i) (the shorter way), the
+    normal equations of the quadratic in tau, its value at 0 as a rotation
+    (Rodrigues). About 2 us for 9 samples, against ~150 us in numpy."""
     x0, y0, z0, w0 = -q0[0], -q0[1], -q0[2], q0[3]  # q0's conjugate
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    rel = np.stack([
-        w0 * x + x0 * w + y0 * z - z0 * y,
-        w0 * y - x0 * z + y0 * w + z0 * x,
-        w0 * z + x0 * y - y0 * x + z0 * w,
-        w0 * w - x0 * x - y0 * y - z0 * z,
-    ], axis=1)
-    rel[rel[:, 3] < 0] *= -1.0
-    s = np.linalg.norm(rel[:, :3], axis=1)
-    scale = np.where(s > 1e-12, 2.0 * np.arctan2(s, rel[:, 3]) / np.maximum(s, 1e-300), 2.0)
-    return rel[:, :3] * scale[:, None]
+    ata = np.zeros((3, 3))
+    atv = np.zeros((3, 3))
+    for i in range(len(tau_s)):
+        x, y, z, w = qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]
+        rx = w0 * x + x0 * w + y0 * z - z0 * y
+        ry = w0 * y - x0 * z + y0 * w + z0 * x
+        rz = w0 * z + x0 * y - y0 * x + z0 * w
+        rw = w0 * w - x0 * x - y0 * y - z0 * z
+        if rw < 0.0:
+            rx, ry, rz, rw = -rx, -ry, -rz, -rw
+        sn = np.sqrt(rx * rx + ry * ry + rz * rz)
+        k = 2.0 * np.arctan2(sn, rw) / sn if sn > 1e-12 else 2.0
+        t = tau_s[i]
+        basis = (1.0, t, t * t)
+        v = (rx * k, ry * k, rz * k)
+        for a in range(3):
+            for b in range(3):
+                ata[a, b] += basis[a] * basis[b]
+                atv[a, b] += basis[a] * v[b]
+    d = np.linalg.solve(ata, atv)[0]  # the quadratic's value at tau = 0
+    theta = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    kx = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+    if theta < 1e-12:
+        return np.eye(3) + kx
+    return (np.eye(3) + np.sin(theta) / theta * kx
+            + (1.0 - np.cos(theta)) / (theta * theta) * (kx @ kx))
 
 
 def fitted_delta(tau_s: np.ndarray, q_slerp: np.ndarray, qs: np.ndarray) -> np.ndarray:
     """The fitted attitude at tau = 0 as a rotation from `q_slerp` (the
-    slerped attitude there, xyzw): 3x3, applied on the right."""
-    a = np.stack([np.ones_like(tau_s), tau_s, tau_s * tau_s], axis=1)
-    coef = np.linalg.solve(a.T @ a, a.T @ _rotvecs(q_slerp, qs))  # normal equations, 3 x 3
-    delta, _ = cv2.Rodrigues(coef[0].reshape(3, 1))
-    return delta
+    slerped attitude there, xyzw; `qs` (N, 4) the samples at `tau_s`):
+    3x3, applied on the right."""
+    return _fitted_delta(np.ascontiguousarray(tau_s, dtype=np.float64),
+                         np.ascontiguousarray(q_slerp, dtype=np.float64),
+                         np.ascontiguousarray(qs, dtype=np.float64))
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) before the first frame."""
+    q = np.array([[0.0, 0.0, 0.0, 1.0]] * 5)
+    fitted_delta(np.linspace(-0.02, 0.02, 5), q[0], q)

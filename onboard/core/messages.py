@@ -128,6 +128,14 @@ class TrackResult:
     # NI-SLAM: the variance [m^2] the AHRS's attitude noise adds to each lateral
     # axis of the key's view (onboard.nislam.attitude_var; included in pose_var).
     attitude_var_m2: float = 0.0
+    # The covariance (3x3, W, m^2) of this p_W_m minus the p_W_m this tracker
+    # reported at an earlier frame of the same epoch: (that frame's t_s,
+    # covariance) for each recent frame it can tell, oldest first. Unlike
+    # pose_var (the fused tracker's is absolute: it grows with the drift) it
+    # is what a velocity differenced from two poses needs; the MAVLink feed
+    # uses it (mavlink_feed._twist). () = not known (the feed falls back to
+    # the sum of the two pose_var). The fused tracker: onboard.fusion.displacement.
+    displacement_cov: tuple[tuple[float, np.ndarray], ...] = ()
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

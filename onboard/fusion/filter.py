@@ -22,6 +22,16 @@ measurement is taken against a clone of the fused position where the
 tracker's reference was made (onboard.fusion.fused): the drift then is the
 fused error at those points, carried in P with its correlations, and a
 tracker coming back to an old key closes the loop against that key's clone.
+
+Frozen copies (Schmidt's "consider" states), `n_frozen` slots: a position
+put out at frame j is a fixed number whose error e_j never changes, unlike a
+clone, whose estimate later updates correct. Its cross-covariance with the
+state, C_j = Cov(x, e_j) (n x 3), follows the state's error: predict
+C_j := F C_j (no noise: w is independent of e_j), update C_j := (I - K H) C_j
+(the state's gain; the frozen value takes none), a clone's rows copied with
+it. Var(e_j) stays what P_pp was at j. Kept outside P (all slots side by side
+in one n x 3m array, one product per step), so the filter's own numbers do
+not change (onboard.fusion.displacement: the velocity's covariance).
 """
 
 from __future__ import annotations
@@ -32,12 +42,15 @@ import numpy as np
 class AnchoredFilter:
     """Position/velocity Kalman filter with `n_anchors` cloned anchors."""
 
-    def __init__(self, n_anchors: int, accel_sd_m_s2: float) -> None:
+    def __init__(self, n_anchors: int, accel_sd_m_s2: float, n_frozen: int = 0) -> None:
         self.n = 6 + 3 * n_anchors
         self.x = np.zeros(self.n)
         self.P = np.zeros((self.n, self.n))
         self.q = accel_sd_m_s2**2
         self.t_s: float | None = None
+        self.C = np.zeros((self.n, 3 * n_frozen))  # [C_0 .. C_m-1], C_j = Cov(x, e_j)
+        self.V = np.zeros((n_frozen, 3, 3))  # Var(e_j)
+        self.epoch = 0  # + 1 at each start: the frozen copies of before are void
 
     # ------------------------------------------------------------ state
     @property
@@ -57,6 +70,7 @@ class AnchoredFilter:
         self.x[:3] = p
         self.P[:3, :3] = np.eye(3) * var_p
         self.P[3:6, 3:6] = np.eye(3) * speed_sd**2
+        self.epoch += 1
         for i in range((self.n - 6) // 3):
             self.anchor(i)
 
@@ -79,6 +93,7 @@ class AnchoredFilter:
         P[:3, 3:6] += np.eye(3) * q * dt**2 / 2.0
         P[3:6, :3] += np.eye(3) * q * dt**2 / 2.0
         P[3:6, 3:6] += np.eye(3) * q * dt
+        self.C[:3] += dt * self.C[3:6]
 
     def innovation(self, i: int, z: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(y, S) of measurement z_i = p - a_i: residual and its covariance."""
@@ -103,6 +118,7 @@ class AnchoredFilter:
         y, S = self.innovation(i, z, R)
         PHt = self.P[:, :3] - self.P[:, s]  # P H^T with H = [I 0 .. -I ..]
         K = np.linalg.solve(S, PHt.T).T
+        self.C -= K @ (self.C[:3] - self.C[s])  # (I - K H) C
         self.x += K @ y
         self.P -= K @ PHt.T
         self.P = 0.5 * (self.P + self.P.T)
@@ -127,9 +143,23 @@ class AnchoredFilter:
         self.x[s] = 0.0
         self.P[s, :] = 0.0
         self.P[:, s] = 0.0
+        self.C[s] = 0.0
+
+    def freeze(self, j: int) -> None:
+        """Keep p as put out now in frozen slot j (module doc)."""
+        self.C[:, 3 * j:3 * j + 3] = self.P[:, :3]
+        self.V[j] = self.P[:3, :3]
+
+    def displacement_cov(self, j: int) -> np.ndarray:
+        """Cov(p - p_j) for the frozen copy p_j in slot j:
+        P_pp - C_p - C_p^T + Var(e_j), C_p = Cov(p, e_j) (C_j's rows of p)."""
+        Cp = self.C[:3, 3 * j:3 * j + 3]
+        D = self.P[:3, :3] - Cp - Cp.T + self.V[j]
+        return 0.5 * (D + D.T)
 
     def _clone(self, src: slice, dst: slice) -> None:
         self.x[dst] = self.x[src]
         self.P[dst, :] = self.P[src, :]
         self.P[:, dst] = self.P[:, src]
         self.P[dst, dst] = self.P[src, src]
+        self.C[dst] = self.C[src]

@@ -56,6 +56,7 @@ from scipy.spatial.transform import Rotation
 
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Tracker, TrackResult, TrackState
 from onboard.core.rotations import so3_log
+from onboard.fusion.displacement import OutputClones
 from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.links import Link, measured_by
 from onboard.fusion.measurements import COVARIANCE_MODELS, key_attitude_cov
@@ -86,8 +87,10 @@ class FusedTracker:
     def __init__(self, trackers: list[Tracker], params: FusionParams = FusionParams()) -> None:
         self.p = params
         self.links = [Link(i, t, anchor_slot=2 * i) for i, t in enumerate(trackers)]
-        self.filter = AnchoredFilter(2 * len(trackers) + params.key_clones, params.accel_sd_m_s2)
+        self.filter = AnchoredFilter(2 * len(trackers) + params.key_clones, params.accel_sd_m_s2,
+                                     params.velocity_clones)
         self._free = list(range(2 * len(trackers), 2 * len(trackers) + params.key_clones))
+        self._outputs = OutputClones()  # the velocity's covariance
         self._started = False
         self._lost = False
         self._last_update_s: float | None = None
@@ -354,7 +357,7 @@ class FusedTracker:
         if self._started:
             self.reset_counter += 1
             log.info("t=%.3f: fused pose back after a lost spell: reset %d", t_s, self.reset_counter)
-        self.filter.start(t_s, p0, 0.0, self.p.initial_speed_sd_m_s)
+        self.filter.start(t_s, p0, 0.0, self.p.initial_speed_sd_m_s)  # (drops the frozen outputs)
         self._started, self._lost = True, False
         self._last_update_s = t_s
         for link in self.links:
@@ -436,6 +439,8 @@ class FusedTracker:
             quality = 10  # coasting on the motion model: below the degraded threshold
         head = results[0]
         clouds = tuple(self._cloud_into_world(c) for c in head.finished_keyframes)
+        displacement = self._outputs.covariances(self.filter)
+        self._outputs.record(self.filter, t_s)
         return TrackResult(
             t_s=t_s, state=TrackState.TRACKING, trusted=True, p_W_m=self.filter.p,
             R_W_C=R_W_C, pose_var=pose_var, quality=quality, psr=head.psr,
@@ -444,7 +449,7 @@ class FusedTracker:
             tz_m=head.tz_m, res_m=head.res_m, rotation_residual_rad=head.rotation_residual_rad,
             attitude_offset_s=head.attitude_offset_s, matched_cells=head.matched_cells,
             finished_keyframes=clouds, keyframe_reused=head.keyframe_reused,
-            contributors=contributors, left_out=left_out,
+            contributors=contributors, left_out=left_out, displacement_cov=displacement,
         )
 
     def _unposed(self, t_s: float, results: list[TrackResult], reason: str,

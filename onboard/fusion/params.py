@@ -37,5 +37,9 @@ class FusionParams:
     min_sd_m: float = 0.001  # floor of a measurement's position sd (per axis)
     axes_gain: float = 0.05  # per frame: a tracker's world axes in W follow the AHRS this fast (0: fixed at the anchor)
     # Output
+    # Frozen copies of the last outputs, for the covariance of the displacement
+    # the MAVLink velocity is differenced from (onboard.fusion.displacement):
+    # they must reach back `[mavlink] velocity_window_s` (0.1 s: 3-4 frames at 30 Hz).
+    velocity_clones: int = 6
     max_coast_s: float = 0.2  # no tracker for longer than this: lost (then reset_counter + 1)
     quality_sd_m: float = 0.002  # a motion measured this well (fused sd) has quality 100

@@ -49,11 +49,23 @@ def depth_translation(
     inverse variance of each difference.
     """
     s = key.img.res_m
-    sums = kern.depth_difference_sums(
-        key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
-        p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
-        p.depth_sigma_rel, p.depth_sigma_floor_m, p.depth_subcell, p.depth_cell_step,
-    )
+
+    def sums_at(step: int) -> np.ndarray:
+        return kern.depth_difference_sums(
+            key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
+            p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
+            p.depth_sigma_rel, p.depth_sigma_floor_m, p.depth_subcell, step, p.depth_gate_sigmas,
+        )
+
+    sums = sums_at(p.depth_cell_step)
+    if p.depth_cell_step > 1 and p.depth_sigma_floor_m > 0 and p.depth_all_cells_sd_m > 0 \
+            and float(sums[kern.SUM_W]) > 0 \
+            and 2.0 / float(sums[kern.SUM_W]) > p.depth_all_cells_sd_m ** 2:
+        # The sensor noise alone leaves t_z this uncertain on the sampled
+        # cells (the inverse of the weights' sum, for the difference of two
+        # images): far, sparse views (5 m: 37 mm per point, ~1000 cells),
+        # where every cell's own noise is what is left. All cells then.
+        sums = sums_at(1)
     if float(sums[kern.N]) < p.min_matched_cells:
         return None
     n_cells = int(sums[kern.N])

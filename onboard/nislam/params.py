@@ -54,7 +54,26 @@ class NislamParams:
     # slope: at the whole-cell shift the rounding times the slope moved t_z by
     # up to 1 cm a frame on grazing surfaces (docs/nislam-error-budget.md)
     depth_subcell: bool = True
-    depth_cell_step: int = 2  # Eq. 18 over every n-th row and column (1: 10-15 % less axial noise, +1.7 ms)
+    # Eq. 19's key refinement with the frame's depth carried to the sub-cell
+    # peak and gated like Eq. 18: at the whole-cell shift and ungated the
+    # key's depth drifted on slanted surfaces and edges, and every later t_z
+    # inherited it (docs/nislam-error-budget.md, "The axial part, split")
+    depth_refine_subcell: bool = False
+    # A cell's depth: the mean of the points within this + 3 depth_sigma_rel z^2
+    # of its nearest (the front surface); 0 = the nearest point's, biased
+    # toward the camera under depth noise by a share of sigma that follows
+    # the points per cell (docs/nislam-error-budget.md, "The axial part, split")
+    depth_front_mean_m: float = 0.0
+    depth_cell_step: int = 2
+    # ... but every cell where the sensor noise leaves t_z more uncertain than
+    # this on the sampled ones (far, sparse views; docs/nislam-error-budget.md,
+    # "The axial part, split"); 0 = never
+    depth_all_cells_sd_m: float = 0.0  # Eq. 18 over every n-th row and column (1: 10-15 % less axial noise, +1.7 ms)
+    # The depth gate (gate_depth_m around the median) widened to this many
+    # sigma of each difference's sensor noise (weighted fit only): far cells'
+    # noise is cut symmetrically about the true t_z, not about the median's
+    # error (docs/nislam-error-budget.md, "The axial part, split"); 0 = fixed
+    depth_gate_sigmas: float = 4.0
     depth_sigma_floor_m: float = 0.001  # floor (depth quantisation, ~1 mm); 0 = unweighted (docs/nislam-error-budget.md)
     depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
     # Colour rows exposed one after another over this time (top first); 0 = a

@@ -95,6 +95,7 @@ def project(
     shape: tuple[int, int],
     res_m: float,
     with_colour: bool = False,
+    front: tuple[float, float] = (0.0, 0.0),
 ) -> AxonometricImage:
     """Rotate the cloud into the key's axes (p' = R_rel p, Sec. IV-A1) and
     project it orthographically onto the grid with a z-buffer (nearest point
@@ -103,6 +104,10 @@ def project(
     Cell u covers x' in [(u - W/2) res, (u + 1 - W/2) res): a floor, not C++'s
     truncation toward zero, so the cells either side of the axis are the same
     size and shifts stay unbiased.
+
+    `front` (m, 1/m): a cell's depth is the mean of its points within
+    front[0] + front[1] z^2 of the nearest (kernels.zbuffer_project); (0, 0):
+    the nearest's.
     """
     h, w = shape
     m = np.zeros((3, 4), np.float32)
@@ -110,7 +115,7 @@ def project(
     m[2, :3] = r_key_cur[2]
     m[:2, 3] = (w // 2, h // 2)
     depth, gray, mask, winner = zbuffer_project(
-        cloud.depth_m, cloud.gray8, cloud.rays, m, h, w, with_colour
+        cloud.depth_m, cloud.gray8, cloud.rays, m, h, w, with_colour, front[0], front[1]
     )
     bgr = None
     if with_colour:

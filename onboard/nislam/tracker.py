@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core import attitude_smoothing
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
 from onboard.nislam import kernels as kern
@@ -105,7 +106,11 @@ class NislamTracker:
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
         self._deferred = Deferred()  # steps 5 and 6, for after the pose (deferred.py)
+        # A cell's depth: the mean of its front surface's points (kernels.zbuffer_project)
+        self._front = (params.depth_front_mean_m, 3.0 * params.depth_sigma_rel
+                       if params.depth_front_mean_m > 0 else 0.0)
         kern.warm_up()  # compile before the first frame, not during it
+        attitude_smoothing.warm_up()  # the attitude's local fit, which rotation_at runs
 
     # ------------------------------------------------------------------ API
     @property
@@ -272,7 +277,7 @@ class NislamTracker:
         self._deferred.run(key)  # its refinement by an earlier match
         r_key = key.R_W_C if r_key is None else r_key
         r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
-        img = project(cloud, r_rel, self.shape, key.img.res_m)
+        img = project(cloud, r_rel, self.shape, key.img.res_m, front=self._front)
         if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
             return None
         # The search window grows with the time since the last match, so a
@@ -307,7 +312,8 @@ class NislamTracker:
                 self._deferred.add(self._calib, lambda: self._fit_residual(
                     key, img, peak, depth.tz_m, g, theta_img))
         if peak.psr > self.p.psr_refine:  # for the next frames: after the pose
-            self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m))
+            frac = (peak.du_cells - du, peak.dv_cells - dv)
+            self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m, frac))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         return self._pose(key, peak, depth, theta_img)
 
@@ -388,9 +394,16 @@ class NislamTracker:
             return None
         return w_key - r_rel @ w_cur
 
-    def _refine(self, key: Key, img: AxonometricImage, du: int, dv: int, tz: float) -> None:
+    def _refine(self, key: Key, img: AxonometricImage, du: int, dv: int, tz: float,
+                frac: tuple[float, float] = (0.0, 0.0)) -> None:
         """Count-weighted moving average of the key images (Eq. 19a/b), as an
-        incremental mean: ref += (new - ref) * w_new / (W_k + w_new)."""
+        incremental mean: ref += (new - ref) * w_new / (W_k + w_new).
+        `depth_refine_subcell`: the frame's depth carried to the sub-cell peak
+        and gated as in Eq. 18 (kernels.refine_key)."""
+        if self.p.depth_refine_subcell:
+            kern.refine_key(key.gray_ref, key.depth_ref, key.count, img.gray,
+                            img.depth_m, img.mask, du, dv, frac[0], frac[1], tz, self.p.gate_depth_m)
+            return
         ks, cs = overlap(self.shape, du, dv)
         w_new = img.mask[cs]
         cnt = key.count[ks]
@@ -432,7 +445,8 @@ class NislamTracker:
         slot = self._store.take()
         # hand_over is False only for the Eq. 17 key, made after the pose already.
         colour_later = hand_over
-        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=not colour_later))
+        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=not colour_later,
+                                front=self._front))
         if colour_later:  # the same projection's colour: a third of the key's making
             self._deferred.add(slot.bgr, lambda: np.copyto(slot.bgr, project(
                 prev.cloud, np.eye(3), self.shape, res, with_colour=True).bgr))

@@ -19,8 +19,10 @@ half turn about x: R_L_W = diag(1, -1, -1). Then
                stacks skip a NaN velocity
     covariance diagonal of the 6x6 upper triangle, indices 0, 6, 11, 15, 18,
                20: position variances rotated into L, attitude variances as
-               the tracker gives them; velocity variances propagated from
-               the two poses
+               the tracker gives them; velocity variances those of the
+               displacement p(k) - p(j) over dt^2 (`_twist`): the tracker's
+               covariance of that displacement when it tells one
+               (`TrackResult.displacement_cov`), else the two poses' summed
 
 with R_B_C the camera mount (`mount`): "forward" (camera z = body x, camera
 x = body y, camera y = body z), "down" (camera z = body z, the image top
@@ -203,6 +205,8 @@ class _Pose:
     p_L: np.ndarray
     R_L_B: np.ndarray
     var: np.ndarray  # (6,)
+    # t_s of an earlier frame -> Cov(p_L(this) - p_L(that)) (3x3), as the tracker tells it
+    disp: dict[float, np.ndarray]
 
 
 class VisionFeed:
@@ -289,7 +293,9 @@ class VisionFeed:
         R_L_B = self.R_L_W @ np.asarray(result.R_W_C, dtype=np.float64) @ self.R_C_B
         var = np.asarray(result.pose_var, dtype=np.float64).copy()
         var[:3] = (self.R_L_W**2) @ var[:3]
-        pose = _Pose(result.t_s, p_L, R_L_B, var)
+        disp = {t_j: self.R_L_W @ np.asarray(C, dtype=np.float64) @ self.R_L_W.T
+                for t_j, C in result.displacement_cov}
+        pose = _Pose(result.t_s, p_L, R_L_B, var, disp)
         texts: list[tuple[int, str]] = []
 
         jump = self._jump(pose)
@@ -304,7 +310,8 @@ class VisionFeed:
             self._pending_reset = None
             self._history.clear()
 
-        v_L, v_var_L, w_B, w_var = self._twist(pose)
+        v_L, v_cov_L, w_B, w_var = self._twist(pose)
+        v_var_L = np.diag(v_cov_L).copy()
         self._history.append(pose)
         self._had_pose = True
         quality = int(min(100, max(1, result.quality)))
@@ -318,7 +325,7 @@ class VisionFeed:
             v_L_m_s=v_L,
             w_B_rad_s=w_B,
             pose_var=var,
-            twist_var_B=np.concatenate([(R_L_B.T**2) @ v_var_L, w_var]),
+            twist_var_B=np.concatenate([np.diag(R_L_B.T @ v_cov_L @ R_L_B), w_var]),
             v_var_L=v_var_L,
             reset_counter=self.reset_counter,
             quality=quality,
@@ -347,9 +354,24 @@ class VisionFeed:
         return None
 
     def _twist(self, pose: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Velocity in L and body rates against the oldest pose of this epoch
-        at most `velocity_window_s` old, else the previous one; NaN when there
-        is none. Poses older than the one used are no longer needed."""
+        """Velocity in L with its covariance (3x3) and body rates with their
+        variances, against the oldest pose of this epoch at most
+        `velocity_window_s` old, else the previous one; NaN when there is
+        none. Poses older than the one used are no longer needed.
+
+        v = (p_k - p_j) / dt, so Cov(v) = Cov(p_k - p_j) / dt^2, and
+        Cov(p_k - p_j) = Var(p_k) + Var(p_j) - Cov(p_k, p_j) - Cov(p_j, p_k).
+        The cross terms are what the tracker knows and the feed does not: two
+        poses measured against the same key share the key's error, and a
+        filter's two outputs share all the drift before the first, so with
+        absolute variances (the fused tracker's grow with the drift) the sum
+        alone says the velocity gets worse over the flight while its
+        displacement over 0.1 s stays as precise. So the tracker's own
+        covariance of this displacement is used when it tells one for pose j
+        (`TrackResult.displacement_cov`; the fused tracker's from a clone of
+        its output at j: onboard.fusion.displacement); otherwise the
+        cross terms are taken as zero: Var(p_k) + Var(p_j), right for
+        independent errors (a tracker whose pose_var is a frame's own)."""
         history = self._history
         ref = next((p for p in history if pose.t_s - p.t_s <= self.window_s), None)
         if ref is None and history:
@@ -359,10 +381,13 @@ class VisionFeed:
         nan3 = np.full(3, np.nan)
         dt = math.nan if ref is None else pose.t_s - ref.t_s
         if not dt > 0:
-            return nan3, nan3, nan3, nan3
+            return nan3, np.full((3, 3), np.nan), nan3, nan3
         v_L = (pose.p_L - ref.p_L) / dt
         w_B = so3_log(ref.R_L_B.T @ pose.R_L_B) / dt
-        return v_L, (pose.var[:3] + ref.var[:3]) / dt**2, w_B, (pose.var[3:] + ref.var[3:]) / dt**2
+        disp = pose.disp.get(ref.t_s)
+        if disp is None or not np.all(np.isfinite(disp)):
+            disp = np.diag(pose.var[:3] + ref.var[:3])
+        return v_L, disp / dt**2, w_B, (pose.var[3:] + ref.var[3:]) / dt**2
 
     def _enter(self, sample: VisionSample | None, state: FeedState, text: str) -> FeedEvent:
         changed = state is not self.state
