@@ -141,10 +141,10 @@ def _clouds(scene: Scene, in_place: bool, monkeypatch) -> tuple[list, list, list
     coloured: list[bool] = []
     project = tracker_mod.project
 
-    def spy(*a, with_colour=False):
+    def spy(*a, with_colour=False, **kw):
         if with_colour:
             coloured.append(inside[0])
-        return project(*a, with_colour=with_colour)
+        return project(*a, with_colour=with_colour, **kw)
 
     with monkeypatch.context() as m:
         m.setattr(tracker_mod, "project", spy)

@@ -107,8 +107,9 @@ def assert_accounted(result, n_frames: int) -> None:
 def attitude_error_deg(original: Path, recorded: Path) -> float:
     """Largest angle between the two sequences' R_W_C at the recorded frames."""
     a, b = open_sequence(original), open_sequence(recorded)
-    att_a, _ = attitude_for_replay(a, AttitudeErrorModel())
-    att_b, _ = attitude_for_replay(b, AttitudeErrorModel())
+    # the samples as recorded, not the local fit over them (core/attitude_smoothing.py)
+    att_a, _ = attitude_for_replay(a, AttitudeErrorModel(), smoothing_s=0.0)
+    att_b, _ = attitude_for_replay(b, AttitudeErrorModel(), smoothing_s=0.0)
     worst, checked = 0.0, 0
     for t in b.frame_times_s:
         ra, rb = att_a.rotation_at(float(t)), att_b.rotation_at(float(t))

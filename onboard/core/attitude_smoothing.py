@@ -26,7 +26,6 @@ side); nothing waits for more.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 DEFAULT_HALF_S = 0.04
 MIN_SAMPLES = 5
@@ -39,8 +38,7 @@ def dense_enough(n_in: int, n_before: int, n_after: int) -> bool:
     return n_in >= MIN_SAMPLES and n_before >= MIN_EACH_SIDE and n_after >= MIN_EACH_SIDE
 
 
-@njit(cache=True, nogil=True)
-def _fitted_delta(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> np.ndarray:
+def _fitted_delta_py(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> np.ndarray:
     """One pass: rotation vectors log(q0^-1 q_i) (the shorter way), the
     normal equations of the quadratic in tau, its value at 0 as a rotation
     (Rodrigues). About 2 us for 9 samples, against ~150 us in numpy."""
@@ -73,11 +71,25 @@ def _fitted_delta(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> np.ndarr
             + (1.0 - np.cos(theta)) / (theta * theta) * (kx @ kx))
 
 
+_compiled = None
+
+
+def _fitted_delta():
+    """The kernel compiled on first use (numba's disk cache after the first
+    process): importing the attitude buffer, e.g. to load a configuration,
+    costs no numba import."""
+    global _compiled
+    if _compiled is None:
+        from numba import njit
+        _compiled = njit(cache=True, nogil=True)(_fitted_delta_py)
+    return _compiled
+
+
 def fitted_delta(tau_s: np.ndarray, q_slerp: np.ndarray, qs: np.ndarray) -> np.ndarray:
     """The fitted attitude at tau = 0 as a rotation from `q_slerp` (the
     slerped attitude there, xyzw; `qs` (N, 4) the samples at `tau_s`):
     3x3, applied on the right."""
-    return _fitted_delta(np.ascontiguousarray(tau_s, dtype=np.float64),
+    return _fitted_delta()(np.ascontiguousarray(tau_s, dtype=np.float64),
                          np.ascontiguousarray(q_slerp, dtype=np.float64),
                          np.ascontiguousarray(qs, dtype=np.float64))
 
