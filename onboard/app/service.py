@@ -68,6 +68,7 @@ from onboard.core.trajectory import write_tum
 from onboard.fusion.registry import make_tracker
 from onboard.fusion.switching import SwitchingTracker
 from onboard.nislam import kernels
+from onboard.core import attitude_smoothing
 from onboard.outputs.group import Output, make_outputs
 from onboard.outputs.wake import Wake, defer_wakeups
 
@@ -167,6 +168,7 @@ class Service:
         if devices_first:
             self.sources.start()
         kernels.warm_up()
+        attitude_smoothing.warm_up()  # the attitude buffer's local fit, for the tracker
         if not devices_first:
             self.sources.start()
         if self.live is not None:
