@@ -4,7 +4,7 @@ between the two next to it (docs/nislam-error-budget.md, "AHRS jitter").
 An AHRS samples the attitude 3x faster than the camera (100 Hz against
 30 Hz) and each sample carries its own jitter (the myAHRS+ class: ~0.1 deg
 per sample), which NI-SLAM turns into a lateral shift of angle x depth
-(Eqs. 9-12: the cloud is rotated by the attitude before the projection). A
+(Sec. IV-A: the cloud is rotated by the attitude before the projection). A
 quadratic fitted by least squares to the samples within +-`half_s`, in the
 tangent space at the slerped attitude, keeps the motion (exact for constant
 angular acceleration; a jerk, odd about the frame, does not move the centre)
