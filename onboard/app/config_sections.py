@@ -123,7 +123,7 @@ class ServiceConfig:
     attitude_wait_s: float = 0.05  # longest wait for the AHRS to reach a frame's capture time
     stats_period_s: float = 5.0  # one statistics line (and systemd STATUS) this often
     replay_speed: float = 1.0  # --replay / --sim pace: 1 = real time
-    realtime_priority: int = 10  # SCHED_FIFO priority once the first frame is tracked (0: normal)
+    realtime_priority: int = 0  # SCHED_FIFO priority once the first frame is tracked (0: normal)
 
 
 SIM_FOLLOW_REQUESTS = ("SIM_STATE", "HIL_STATE_QUATERNION", "none")
