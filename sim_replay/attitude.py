@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.core.attitude_smoothing import DEFAULT_HALF_S, dense_enough, fitted_delta
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, local_fit
 from onboard.core.rotations import quat_slerp, quat_to_matrix
 from onboard.core.trajectory import Trajectory
 from sim_replay.tum import Sequence
@@ -48,7 +48,6 @@ class AttitudeSeries:
         self._q_xyzw: list[tuple[float, float, float, float]] = [
             (float(q[0]), float(q[1]), float(q[2]), float(q[3])) for q in trajectory.q_xyzw
         ]
-        self._t_arr = np.asarray(self._t_s, dtype=np.float64)  # the same, for the local fit
         self._q_arr = np.asarray(self._q_xyzw, dtype=np.float64).reshape(-1, 4)
 
     def __len__(self) -> int:
@@ -68,13 +67,10 @@ class AttitudeSeries:
         r = quat_to_matrix(q)
         if self.smoothing_s <= 0.0:
             return r
-        ts = self._t_s
-        i0 = bisect.bisect_left(ts, t_s - self.smoothing_s)
-        i1 = bisect.bisect_right(ts, t_s + self.smoothing_s)
-        if not dense_enough(i1 - i0, bisect.bisect_left(ts, t_s, i0, i1) - i0,
-                            i1 - bisect.bisect_right(ts, t_s, i0, i1)):
-            return r
-        return r @ fitted_delta(self._t_arr[i0:i1] - t_s, np.asarray(q), self._q_arr[i0:i1])
+        i0 = bisect.bisect_left(self._t_s, t_s - self.smoothing_s)
+        i1 = bisect.bisect_right(self._t_s, t_s + self.smoothing_s)
+        delta = local_fit(t_s, self._t_s[i0:i1], self._q_arr[i0:i1], q)
+        return r if delta is None else r @ delta
 
     def _quat_at(self, t_s: float) -> tuple[float, float, float, float] | None:
         ts = self._t_s

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.device_state import DeviceState, State
-from onboard.core.attitude_smoothing import DEFAULT_HALF_S, dense_enough, fitted_delta
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, local_fit
 from onboard.core.rotations import (
     Quat,
     quat_conj,
@@ -165,11 +165,9 @@ class AttitudeBuffer:
         r_w_b = quat_to_matrix(q)
         if self.smoothing_s > 0.0:
             ts, qs = self._body_quats_between(t_s - self.smoothing_s, t_s + self.smoothing_s)
-            if dense_enough(len(ts), bisect.bisect_left(ts, t_s),
-                            len(ts) - bisect.bisect_right(ts, t_s)):
-                # fitted in the body's tangent space, then the mount: R_W_B(t) d R_B_C
-                tau = np.asarray(ts, dtype=np.float64) - t_s
-                r_w_b = r_w_b @ fitted_delta(tau, np.asarray(q), qs)
+            delta = local_fit(t_s, ts, qs, q)
+            if delta is not None:  # fitted in the body's tangent space, then the mount
+                r_w_b = r_w_b @ delta
         return r_w_b @ self.R_B_C
 
     def body_rotation_at(self, t_s: float) -> np.ndarray | None:

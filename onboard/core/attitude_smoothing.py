@@ -25,6 +25,8 @@ side); nothing waits for more.
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 DEFAULT_HALF_S = 0.04
@@ -32,10 +34,15 @@ MIN_SAMPLES = 5
 MIN_EACH_SIDE = 2
 
 
-def dense_enough(n_in: int, n_before: int, n_after: int) -> bool:
-    """`n_in` samples in the window, `n_before` / `n_after` of them stamped
-    before / after the frame: enough to average, not interpolate."""
-    return n_in >= MIN_SAMPLES and n_before >= MIN_EACH_SIDE and n_after >= MIN_EACH_SIDE
+def local_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp) -> np.ndarray | None:
+    """The fitted attitude at `t_s` as a rotation from `q_slerp` (3x3, on the
+    right), from the samples (increasing stamps `ts`, quaternions `qs` (N, 4)
+    xyzw) within the window; None where they are too sparse to average."""
+    n_before = bisect.bisect_left(ts, t_s)
+    n_after = len(ts) - bisect.bisect_right(ts, t_s)
+    if len(ts) < MIN_SAMPLES or n_before < MIN_EACH_SIDE or n_after < MIN_EACH_SIDE:
+        return None
+    return fitted_delta(np.asarray(ts, dtype=np.float64) - t_s, np.asarray(q_slerp), qs)
 
 
 def _fitted_delta_py(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> np.ndarray:
