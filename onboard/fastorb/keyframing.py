@@ -194,6 +194,7 @@ class KeyframeMaking:
                 xyz = kf.xyz_W.copy()
                 xyz[hit] += moves[pos[hit]]
                 kf.xyz_W = xyz  # replaced, never written in place (loop.py keeps references)
+                self.loops.points_moved(kf)
                 changed = True
         if changed:
             self._map.changed()
