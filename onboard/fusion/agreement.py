@@ -17,12 +17,14 @@ chi2(k) as nu grows, so early honest disagreement is not taken for an
 outlier, while a wild pose (hundreds) still is, and once a few dozen frames
 have been seen the bound is the chi-square one again.
 
-The estimate (a conjugate inverse-gamma one, Gelman et al., Bayesian Data
-Analysis, Sec. 3.2) starts from the trackers' own covariances, worth
-`outlier_prior_dof` dof (scale 1), and forgets at the agreement scale's own
-rate (`noise_adapt_gain`), since S is rescaled at that rate and older
-disagreements say less about it. A frame beyond the bound adds only the bound
-(censored): one wild pose cannot widen the check for the next.
+The estimate (the conjugate scaled-inverse-chi2 one of a normal variance,
+Gelman et al., Bayesian Data Analysis, ch. 2-3) starts from the trackers'
+own covariances, worth `outlier_prior_dof` dof (scale 1), and forgets at the
+agreement scale's own rate (`noise_adapt_gain`), since S is rescaled at that
+rate and older disagreements say less about it. A frame beyond the bound
+adds only the bound (censored): a wild pose widens the check no more than an
+honest frame at the bound would (counted at its d^2, a frame a thousand
+times off would open it for the next wild one).
 """
 
 from __future__ import annotations
