@@ -8,7 +8,7 @@ p_mid = p_v - tau_v (omega x p_v + rho)). When the landmark is made, the
 only rate at hand is the one the frame's own rows' shear measured
 (shutter.refine_with_rate, its prior the last frame's): on tum_fr1_rpy it is
 off from the ground truth's by 0.9-1.3 rad/s RMS per axis at the key frames,
-a constant 0.4-0.5 rad/s of it (the fit also soaks up what else shears the
+a constant 0.4-0.7 rad/s of it (the fit also soaks up what else shears the
 rows, and nothing ties it to the poses). At 1 m and 14 ms from the middle
 row, 1 rad/s puts a landmark 14 mm off, and landmarks persist: drift. Once
 the next frame is posed, the central difference of the poses on both sides,
