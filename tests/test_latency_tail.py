@@ -10,10 +10,9 @@ as before, never by timing: the results stay identical.
 - A key made inside track() (the first, a restart, after a failed match) is
   matched at once, but its colour (for the map only) is gathered after the
   pose: the clouds handed out are those of gathering it in place.
-- A key re-use (a kept key matching a frame whose key weakened) is decided
-  after that frame's pose: its candidate matches are not on the pose path.
 - A turn that carries the view off the key's grid hands the key over on
-  the last firm frame, after its pose, not on the failed match that follows.
+  the last firm frame, after its pose (kept keys tried, or a new key), not
+  on the failed match that follows.
 - The service, bench and replay keep freed memory for the next frame
   (onboard/app/allocator.py): no page faults for arrays made every frame.
 """
@@ -224,12 +223,12 @@ def test_freed_memory_is_kept_for_the_next_frame():
     assert faults("keep") < 100
 
 
-def test_a_key_re_use_is_decided_after_the_pose(scene, monkeypatch):
-    """The pan's weakened frame (PSR < T_r against key 1, back at key 0's
-    view) is matched once inside track(), against key 1, and posed on it; key
-    0, the re-use candidate, is matched in finish_frame(). The next frame is
-    measured against key 0 and says so (re-used, the announced key 2
-    withdrawn). Before, key 0's match ran inside track() and set the pose."""
+def test_a_firm_frame_leaving_the_grid_tries_kept_keys_after_its_pose(scene, monkeypatch):
+    """The slow pan out to 30 deg (key 1 made at 25 deg, below) and back: near
+    0 deg the frames leave key 1's grid while still matched firmly (PSR ~80)
+    and key 0 is in view again. The frame is posed on key 1 and announces
+    key 2; key 0 is matched in finish_frame() and re-used, so the next frame
+    is measured against it and says so (re-used, key 2 withdrawn)."""
     inside = [False]
     matches: list[tuple[bool, int]] = []  # (inside track(), key id)
     match = NislamTracker._match
@@ -239,7 +238,8 @@ def test_a_key_re_use_is_decided_after_the_pose(scene, monkeypatch):
         return match(self, key, *a, **kw)
 
     monkeypatch.setattr(NislamTracker, "_match", spy)
-    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, map_keyframes=16))
+    tracker = NislamTracker(INTR, _params(psr_keyframe=5.0, min_valid_fraction=0.5,
+                                          map_keyframes=16))
     track = tracker.track
     per_frame: list[list[tuple[bool, int]]] = []
 
@@ -252,14 +252,16 @@ def test_a_key_re_use_is_decided_after_the_pose(scene, monkeypatch):
         per_frame.append(list(matches))
         return r
     tracker.track = track_then_finish  # type: ignore[method-assign]
-    poses = _pan_out_and_back()
-    results = _track_poses(tracker, scene, poses + poses[-1:])
-    weak, on_key0 = results[-2:]
-    assert weak.new_keyframe and weak.reference_keyframe_id == 1 and weak.psr < 150.0
-    assert per_frame[-2] == [(True, 1), (False, 0)]
-    assert on_key0.keyframe_reused and on_key0.keyframe_withdrawn
-    assert on_key0.reference_keyframe_id == 0 and per_frame[-1][0] == (True, 0)
-    assert all(in_track for frame in per_frame for in_track, _ in frame[:1])
+    out = [(_rot(y=1.0 * k), np.array([0.01 * k, 0.0, 0.0])) for k in range(31)]
+    poses = out + out[-2::-1] + out[:1]
+    results = _track_poses(tracker, scene, poses)
+    left = next(i for i, r in enumerate(results) if r.new_keyframe and r.reference_keyframe_id == 1)
+    assert results[left].psr > 50.0 and results[left].keyframe_id == 2
+    assert per_frame[left] == [(True, 1), (False, 0)]  # key 0 tried after the pose
+    nxt = results[left + 1]
+    assert nxt.reference_keyframe_id == 0 and nxt.keyframe_reused and nxt.keyframe_withdrawn
+    assert sum(r.keyframes_added for r in results) == 2  # keys 0 and 1; 2 never made
+    assert max(np.max(np.abs(e)) for e in _errors_mm(results, poses)) < 5.0
 
 
 def test_a_view_leaving_the_key_grid_hands_over_before_the_match_fails(scene, monkeypatch):

@@ -465,27 +465,22 @@ def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
     tracker re-uses key 0 (same view, PSR ~670) instead of starting key 2,
     and the position is measured against key 0 again (no error carried over
     from key 1). Measured: key 0 re-used, error < 0.3 mm; without kept keys,
-    key 2 starts there. The weakened frame is posed against key 1 and
-    announces key 2; the re-use is decided after its pose, so the frame after
-    it (the same view) is the first measured against key 0 again."""
+    key 2 starts there."""
     poses = _pan_out_and_back()
-    poses.append(poses[-1])
     tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, map_keyframes=map_keyframes))
     results = _track_poses(tracker, scene, poses)
     assert all(r.trusted for r in results)
-    assert sum(r.keyframes_added for r in results) == (2 if map_keyframes else 3)
-    weak, last = results[-2:]
-    assert weak.new_keyframe and weak.keyframe_id == 2 and weak.reference_keyframe_id == 1
-    # key 1's cloud is handed out when the tracker leaves it
-    assert [k.keyframe_id for k in weak.finished_keyframes] == [1]
+    assert sum(r.new_keyframe for r in results) == (2 if map_keyframes else 3)
+    last = results[-1]
     if map_keyframes:
-        assert last.keyframe_reused and last.keyframe_withdrawn and last.keyframe_id == 0
-        assert last.reference_keyframe_id == 0 and not last.new_keyframe
+        assert last.keyframe_reused and not last.new_keyframe and last.keyframe_id == 0
         assert last.psr > 150.0
+        # key 1's cloud is handed out when the tracker leaves it
+        assert [k.keyframe_id for k in last.finished_keyframes] == [1]
         assert last.reset_counter == 0  # the re-use moved the position < 1 mm: no jump
     else:
-        assert not any(r.keyframe_reused or r.keyframe_withdrawn for r in results)
-        assert last.keyframe_id == 2 and last.reference_keyframe_id == 2
+        assert not any(r.keyframe_reused for r in results)
+        assert last.new_keyframe and last.keyframe_id == 2
     for e in _errors_mm(results, poses):
         assert np.max(np.abs(e)) < POS_TOL_M * 1000
 
@@ -493,10 +488,9 @@ def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
 def test_key_reuse_that_jumps_bumps_the_reset_counter(scene):
     """The same pan with reuse_reset_jump_m = 0 and no allowance for the
     distance flown between frames (search_speed_m_s = 0): the re-use frame's
-    step from the position reported for the weakened frame now counts as a
-    jump: one reset, on the first frame measured against the re-used key."""
+    2 mm step from the last reported position now counts as a jump: one
+    reset, on the re-use frame only."""
     poses = _pan_out_and_back()
-    poses.append(poses[-1])
     tracker = NislamTracker(
         INTR, _params(psr_keyframe=150.0, reuse_reset_jump_m=0.0, search_speed_m_s=0.0)
     )

@@ -21,11 +21,8 @@ def _pan_with_misplaced_key(scene, link_every_n_frames: int, err_m: float = 0.02
     """The pan out to 30 deg and back of test_nislam (key 1 starts near 12
     deg, key 0 is re-used on the way back), with key 1 placed `err_m` off
     along x when it is made: the error a weak switching match can give a new
-    key. Returns the position errors [mm] and the results. The last view is
-    held one frame more: the re-use is decided after the weakened frame's
-    pose, so the frame after it is the first measured against key 0."""
+    key. Returns the position errors [mm] and the results."""
     poses = _pan_out_and_back()
-    poses.append(poses[-1])
     tracker = NislamTracker(INTR, _params(psr_keyframe=150.0,
                                           link_every_n_frames=link_every_n_frames))
     att = TableAttitude()

@@ -180,8 +180,10 @@ class NislamTracker:
         finished: list[KeyframeCloud] = []
         outcome = self._match(key, cloud, t_g, r_g, attitude, t_att)
         reused = False
-        if outcome is None:
-            # Nothing to pose the frame on: the kept keys now, before the pose.
+        if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
+            # A failed or weakened match (it may have slid off the true
+            # shift, as on blank-turn and yaw-spin): the kept keys are tried
+            # before the pose, which takes a firm one's match.
             found = self._reuse(key, outcome, cloud, t_g, r_g, attitude, t_att)
             if found is not None:
                 finished.append(self._key_cloud(key))
@@ -202,22 +204,28 @@ class NislamTracker:
         self._prev = _Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3])
         self._last_trusted_p = outcome.p_W_m
-        new_key = peak.psr < self.p.psr_keyframe or self._leaving_grid(key)  # Eq. 17
+        new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
+        leaving = not new_key and self._leaving_grid(key)
         key_id = self._key.keyframe_id
         n_link = self.p.link_every_n_frames
-        if n_link > 0 and not new_key and not reused and self._frame_count % n_link == 0:
+        if n_link > 0 and not (new_key or leaving or reused) and self._frame_count % n_link == 0:
             self._deferred.add(None, lambda: self._link(key, outcome, cloud, t_g, r_g, attitude,
                                                         t_att))
-        if new_key:
+        if new_key or leaving:
             # The switching frame is posed against the old key, then becomes the
-            # key with that pose (ref. "Per-frame order", step 6), unless a
-            # kept key matches it firmly: both decided after the pose went out
-            # (finish_frame), the old key's cloud goes now.
+            # key with that pose (ref. "Per-frame order", step 6): made after
+            # the pose went out (finish_frame); the old key's cloud goes now.
+            # A frame still matched firmly but leaving the key's grid tries
+            # the kept keys first, after its pose too: its pose does not
+            # depend on them.
             finished.append(self._key_cloud(self._key))
             key_id = self._next_key_id
             prev = self._prev
-            self._deferred.add(None, lambda: self._reuse_or_new_key(
-                key, outcome, prev, attitude, t_att))
+            if new_key:
+                self._deferred.add(None, lambda: self._new_key_from(prev, hand_over=False))
+            else:
+                self._deferred.add(None, lambda: self._reuse_or_new_key(
+                    key, outcome, prev, attitude, t_att))
         att_var = attitude_lateral_var_m2(outcome.depth.z_mean_m, self.p.attitude_sd_deg)
         return TrackResult(
             t_s=frame.t_s,
@@ -229,7 +237,7 @@ class NislamTracker:
             quality=quality_from_psr(peak.psr, self.p.psr_lost, self.p.psr_refine),
             psr=peak.psr,
             keyframe_id=key_id,
-            new_keyframe=new_key,
+            new_keyframe=new_key or leaving,
             reset_counter=self._reset_counter,
             lost_reason=None,
             shift_cells=(peak.du_cells, peak.dv_cells),
@@ -270,7 +278,8 @@ class NislamTracker:
         match. When the next frame, extrapolated from the last two, would
         fall below it, the key is handed over now, after this firm frame's
         pose, as Eq. 17 does, instead of on that failed match: then the pose
-        waited for a new key made from the frame before and a second match."""
+        waited for the kept keys, a new key made from the frame before and a
+        second match."""
         if len(key.coverage) < 2:
             return False
         before, now = key.coverage
@@ -412,11 +421,11 @@ class NislamTracker:
 
     def _reuse_or_new_key(self, key: Key, outcome: _Match, prev: _Prev,
                           attitude: AttitudeSource, t_att: float) -> None:
-        """After the pose of a frame whose match weakened (PSR < T_r): a kept
-        key that matches it firmly becomes the key again (the next frame says
-        `keyframe_reused`), otherwise the frame becomes the key (Eq. 17). The
-        key id the frame announced is used up either way, so an id never
-        names two keys."""
+        """After the pose of a frame leaving its key's grid (`_leaving_grid`):
+        a kept key that matches it firmly becomes the key again (the next
+        frame says `keyframe_reused` and `keyframe_withdrawn`), otherwise the
+        frame becomes the key (Eq. 17). The key id the frame announced is used
+        up either way, so an id never names two keys."""
         found = self._reuse(key, outcome, prev.cloud, prev.t_s, prev.R_W_C, attitude, t_att)
         if found is None:
             self._new_key_from(prev, hand_over=False)
