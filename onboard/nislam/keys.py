@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.nislam.calibration import RotationResidual
+from onboard.nislam import kernels as kern
+from onboard.nislam.calibration import RotationResidual, overlap
 from onboard.nislam.correlation import KernelCorrelationFilter
 from onboard.nislam.projection import AxonometricImage
 
@@ -129,3 +130,36 @@ class Key:
 
     def since_last_match_s(self, t_s: float) -> float:
         return t_s - (self.shifts[-1][0] if self.shifts else self.t_s)
+
+    def leaving_grid(self, min_fraction: float) -> bool:
+        """A turn carries the view off the key's grid: each frame covers less
+        of it while the match stays firm (on `circle` PSR 35-55 down to the
+        last frame), and the first frame below `min_fraction` fails the
+        match. True when the next frame, extrapolated from the last two,
+        would fall below it: the tracker hands the key over now, after this
+        firm frame's pose, as Eq. 17 does, instead of on that failed match
+        (then the pose waited for the kept keys, a new key made from the frame
+        before and a second match)."""
+        if len(self.coverage) < 2:
+            return False
+        before, now = self.coverage
+        return 2.0 * now - before < min_fraction
+
+    def refine(self, img: AxonometricImage, du: int, dv: int, tz: float,
+               frac: tuple[float, float], subcell: bool, gate_m: float) -> None:
+        """Count-weighted moving average of the key images (Eq. 19a/b), as an
+        incremental mean: ref += (new - ref) * w_new / (W_k + w_new).
+        `subcell`: the frame's depth carried to the sub-cell peak and gated as
+        in Eq. 18 (kernels.refine_key)."""
+        if subcell:
+            kern.refine_key(self.gray_ref, self.depth_ref, self.count, img.gray,
+                            img.depth_m, img.mask, du, dv, frac[0], frac[1], tz, gate_m)
+            return
+        ks, cs = overlap(self.gray_ref.shape, du, dv)
+        w_new = img.mask[cs]
+        cnt = self.count[ks]
+        cnt += w_new
+        gain = w_new / np.maximum(cnt, 1.0)
+        self.gray_ref[ks] += (img.gray[cs] - self.gray_ref[ks]) * gain
+        # Eq. 19 with I_new - dz: depth moved into the key's axes first.
+        self.depth_ref[ks] += (img.depth_m[cs] + tz - self.depth_ref[ks]) * gain

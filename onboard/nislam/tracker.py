@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,12 +30,13 @@ from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
 from onboard.nislam import kernels as kern
 from onboard.nislam.attitude_var import attitude_lateral_var_m2, with_attitude_var
-from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate, overlap
+from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate
 from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
 from onboard.nislam.deferred import Deferred
-from onboard.nislam.depth import DepthFit, depth_translation
+from onboard.nislam.depth import depth_translation
 from onboard.nislam.keymap import KeyframeMap, Measured
 from onboard.nislam.keys import Key, KeyStore
+from onboard.nislam.matched import Match, Prev, pose_from_match
 from onboard.nislam.params import NislamParams
 from onboard.nislam.projection import (
     AxonometricImage,
@@ -45,40 +45,10 @@ from onboard.nislam.projection import (
     make_cloud,
     project,
 )
-from onboard.nislam.results import lost_result, pose_variance, quality_from_psr, restart_result
+from onboard.nislam.results import lost_result, quality_from_psr, restart_result
 from onboard.nislam.shutter import rolling_shutter_cloud
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class _Match:
-    """A frame matched against the key: pose and what the result reports."""
-
-    p_W_m: np.ndarray
-    peak: Peak
-    depth: DepthFit
-    theta_rad: np.ndarray  # residual rotation seen by the colour layers (0 if not measured)
-    pose_var: np.ndarray  # (6,) in the world frame
-
-
-@dataclass
-class _Prev:
-    """The last trusted frame, kept to seed a new key: its position as an
-    offset from the key it was matched against (`base`, None after a
-    restart: then the offset is the position), so a refined key position
-    carries over."""
-
-    t_s: float
-    cloud: Cloud
-    R_W_C: np.ndarray
-    base: "Key | None"
-    d_W_m: np.ndarray
-    var_W_m2: np.ndarray  # (3,) of the offset
-
-    @property
-    def p_W_m(self) -> np.ndarray:
-        return self.d_W_m if self.base is None else self.base.p_W_m + self.d_W_m
 
 
 class NislamTracker:
@@ -96,7 +66,7 @@ class NislamTracker:
         self._store = KeyStore(self.shape, max(params.map_keyframes, 1) + 1)
         self._map: KeyframeMap[Key] = KeyframeMap(
             params.map_keyframes, on_evict=lambda key: self._store.give_back(key.slot))
-        self._prev: _Prev | None = None
+        self._prev: Prev | None = None
         self._next_key_id = 0
         self._reset_counter = 0
         self._lost = False
@@ -201,11 +171,11 @@ class NislamTracker:
             return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
 
         peak = outcome.peak
-        self._prev = _Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
+        self._prev = Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3])
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
-        leaving = not new_key and self._leaving_grid(key)
+        leaving = not new_key and key.leaving_grid(self.p.min_valid_fraction)
         key_id = self._key.keyframe_id
         n_link = self.p.link_every_n_frames
         if n_link > 0 and not (new_key or leaving or reused) and self._frame_count % n_link == 0:
@@ -271,20 +241,6 @@ class NislamTracker:
             log.info("key re-use moved the position by %.3f m: reset %d", jump_m,
                      self._reset_counter)
 
-    def _leaving_grid(self, key: Key) -> bool:
-        """A turn carries the view off the key's grid: each frame covers less
-        of it while the match stays firm (on `circle` PSR 35-55 down to the
-        last frame), and the first frame below `min_valid_fraction` fails the
-        match. When the next frame, extrapolated from the last two, would
-        fall below it, the key is handed over now, after this firm frame's
-        pose, as Eq. 17 does, instead of on that failed match: then the pose
-        waited for the kept keys, a new key made from the frame before and a
-        second match."""
-        if len(key.coverage) < 2:
-            return False
-        before, now = key.coverage
-        return 2.0 * now - before < self.p.min_valid_fraction
-
     def _coasted_too_long(self, t_s: float) -> bool:
         """No trusted pose for longer than `max_coast_s`: the key is not
         matched again (a window that wide invites a look-alike peak)."""
@@ -299,7 +255,7 @@ class NislamTracker:
     def _match(
         self, key: Key, cloud: Cloud, t_s: float, r_cur: np.ndarray, attitude: AttitudeSource,
         t_att: float, link: bool = False,
-    ) -> _Match | None:
+    ) -> Match | None:
         """`link`: a second measurement of a frame already posed (a key link,
         onboard.nislam.keymap): the key's motion prior, refinement and the
         time-offset calibration are left as they are."""
@@ -329,7 +285,7 @@ class NislamTracker:
         if depth is None:
             return None
         if link:
-            return self._pose(key, peak, depth, np.zeros(3))
+            return pose_from_match(key, peak, depth, np.zeros(3))
         self._frame_count += 1
         # Calibrate on every frame until the offset has settled, then sparsely.
         settling = self._calib.n < self.p.calibrate_settle_updates
@@ -350,7 +306,7 @@ class NislamTracker:
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m, frac))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
         key.coverage = [*key.coverage[-1:], covered]
-        return self._pose(key, peak, depth, theta_img)
+        return pose_from_match(key, peak, depth, theta_img)
 
     def _fit_residual(self, key: Key, img: AxonometricImage, peak: Peak, tz_m: float,
                       g: np.ndarray, theta_out: np.ndarray) -> None:
@@ -361,16 +317,7 @@ class NislamTracker:
             theta_out[:] = theta
             self._calib.update(g[:2], theta[:2])
 
-    @staticmethod
-    def _pose(key: Key, peak, depth: DepthFit, theta_img: np.ndarray) -> _Match:
-        # Content moves opposite to the camera (ref. §9): t = -d s.
-        s = key.img.res_m
-        t_inc = np.array([-peak.du_cells * s, -peak.dv_cells * s, depth.tz_m])
-        p_W = key.p_W_m + key.R_W_C @ t_inc
-        pose_var = pose_variance(peak, s, depth.var_z_m2, key.R_W_C)
-        return _Match(p_W, peak, depth, theta_img, pose_var)
-
-    def _link(self, key: Key, outcome: _Match, cloud: Cloud, t_s: float, r_cur: np.ndarray,
+    def _link(self, key: Key, outcome: Match, cloud: Cloud, t_s: float, r_cur: np.ndarray,
               attitude: AttitudeSource, t_att: float) -> None:
         """The frame, firmly matched against `key`, matched against the kept
         key most alike in view too (KeyframeMap.link): after the pose went out."""
@@ -386,9 +333,9 @@ class NislamTracker:
                        self.p.psr_keyframe, measure)
 
     def _reuse(
-        self, key: Key, outcome: _Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
+        self, key: Key, outcome: Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
         attitude: AttitudeSource, t_att: float,
-    ) -> tuple[Key, _Match] | None:
+    ) -> tuple[Key, Match] | None:
         """The match against the current key weakened (PSR < T_r) or failed:
         try the kept keys that look the same way from about the same place,
         and make the best one that matches at least as firmly as a fresh key
@@ -396,7 +343,7 @@ class NislamTracker:
         keys measures their offset: the key positions are refined from all
         offsets measured so far (onboard.nislam.keymap)."""
         p_guess = outcome.p_W_m if outcome is not None else self._prev.p_W_m  # type: ignore[union-attr]
-        best: tuple[Key, _Match] | None = None
+        best: tuple[Key, Match] | None = None
         for cand in self._map.candidates(
             r_cur, p_guess, key.keyframe_id, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
             self.p.reuse_candidates,
@@ -419,9 +366,9 @@ class NislamTracker:
         self._map.use(cand)
         return cand, dataclasses.replace(o, p_W_m=cand.p_W_m + d_cand)
 
-    def _reuse_or_new_key(self, key: Key, outcome: _Match, prev: _Prev,
+    def _reuse_or_new_key(self, key: Key, outcome: Match, prev: Prev,
                           attitude: AttitudeSource, t_att: float) -> None:
-        """After the pose of a frame leaving its key's grid (`_leaving_grid`):
+        """After the pose of a frame leaving its key's grid (`Key.leaving_grid`):
         a kept key that matches it firmly becomes the key again (the next
         frame says `keyframe_reused` and `keyframe_withdrawn`), otherwise the
         frame becomes the key (Eq. 17). The key id the frame announced is used
@@ -433,7 +380,7 @@ class NislamTracker:
         self._next_key_id += 1
         cand, o = found
         self._count_jump(o.p_W_m, prev.t_s)
-        self._prev = _Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
+        self._prev = Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
                            o.pose_var[:3])
         self._last_trusted_p = o.p_W_m
         self._reused_after_pose = cand.keyframe_id
@@ -450,22 +397,7 @@ class NislamTracker:
 
     def _refine(self, key: Key, img: AxonometricImage, du: int, dv: int, tz: float,
                 frac: tuple[float, float] = (0.0, 0.0)) -> None:
-        """Count-weighted moving average of the key images (Eq. 19a/b), as an
-        incremental mean: ref += (new - ref) * w_new / (W_k + w_new).
-        `depth_refine_subcell`: the frame's depth carried to the sub-cell peak
-        and gated as in Eq. 18 (kernels.refine_key)."""
-        if self.p.depth_refine_subcell:
-            kern.refine_key(key.gray_ref, key.depth_ref, key.count, img.gray,
-                            img.depth_m, img.mask, du, dv, frac[0], frac[1], tz, self.p.gate_depth_m)
-            return
-        ks, cs = overlap(self.shape, du, dv)
-        w_new = img.mask[cs]
-        cnt = key.count[ks]
-        cnt += w_new
-        gain = w_new / np.maximum(cnt, 1.0)
-        key.gray_ref[ks] += (img.gray[cs] - key.gray_ref[ks]) * gain
-        # Eq. 19 with I_new - dz: depth moved into the key's axes first.
-        key.depth_ref[ks] += (img.depth_m[cs] + tz - key.depth_ref[ks]) * gain
+        key.refine(img, du, dv, tz, frac, self.p.depth_refine_subcell, self.p.gate_depth_m)
 
     # ----------------------------------------------------------- key frames
     def _restart(
@@ -478,13 +410,13 @@ class NislamTracker:
         if self._key is not None:
             self._reset_counter += 1
         self._lost = False
-        self._prev = _Prev(t_g, cloud, r_g, None, p_W, np.zeros(3))
+        self._prev = Prev(t_g, cloud, r_g, None, p_W, np.zeros(3))
         finished = self._new_key_from(self._prev)
         self._last_trusted_p = p_W
         return restart_result(t_s, p_W, r_cur, self._key, self._reset_counter,
                               self._offset_s(), tuple(finished))
 
-    def _new_key_from(self, prev: _Prev, hand_over: bool = True) -> list[KeyframeCloud]:
+    def _new_key_from(self, prev: Prev, hand_over: bool = True) -> list[KeyframeCloud]:
         """Project `prev` un-rotated at an adapted resolution and train on it;
         returns the replaced key's cloud for the map (`hand_over`). A key made
         inside track() (the first, a restart, a failed match) is matched at
