@@ -5,6 +5,7 @@ keep its per-frame TrackResults, then replay the fusion alone on them
     python scripts/fusion_cache.py record SEQ CACHE.pkl [--set section.key=value ...]
     python scripts/fusion_cache.py fuse CACHE.pkl [CACHE2.pkl ...] [--set fusion.key=value ...]
     python scripts/fusion_cache.py why CACHE.pkl [...] [--set ...]   (why the coverage is off)
+    python scripts/fusion_cache.py checks CACHE.pkl [...] [--set ...]   (what the outlier check left out)
 
 `record` runs NI-SLAM and FastORB separately on every frame of SEQ (the fused
 tracker runs them independently too, so their results are the same) with the
@@ -204,6 +205,49 @@ def why(cache: dict, params: FusionParams, name: str) -> None:
               f"all three axes within 1 sd {100 * inside:.0f} %")
 
 
+def checks(cache: dict, params: FusionParams, name: str) -> None:
+    """Print each frame the outlier check against the other tracker left out
+    (onboard.fusion.agreement): d^2 and the bound, and the error of the
+    tracker left out and of the one that updated first, against the truth
+    (the clones shadowed as in `why`), with the sd each claimed."""
+    t = np.asarray(cache["t_s"])
+    g, valid = ground_truth_at(t, cache["groundtruth"], 0.1)
+    p_true = np.full((len(t), 3), np.nan)
+    p_true[valid] = g.p_xyz_m
+    fused = FusedTracker([_Cached(n, cache["results"][n]) for n in TRACKERS], params)  # type: ignore[arg-type]
+    f = fused.filter = _TruthFilter(fused.filter, p_true)
+    owner = {s: link.name for link in fused.links for s in (2 * link.index, 2 * link.index + 1)}
+    nis, seen = f.nis, []
+
+    def nis_logged(i: int, z: np.ndarray, R: np.ndarray) -> float:
+        p, _, _ = f.truth[i]
+        seen.append((i, z - (f.p_true[f.k] - p), R))
+        return nis(i, z, R)
+
+    f.nis = nis_logged  # type: ignore[method-assign]
+    check = fused._outliers.check
+
+    def check_logged(d2: float) -> bool:
+        bound = fused._outliers.bound()
+        out = check(d2)
+        if out:
+            i, e, R = seen[-1]
+            j, e1, R1 = f.log[-1][:3]
+
+            def mm(v: np.ndarray) -> float:
+                return 1e3 * float(np.linalg.norm(v))
+            print(f"  frame {f.k:4d}  d2 {d2:6.1f} > {bound:5.1f}  left out {owner.get(i, 'nislam'):7s} "
+                  f"{mm(e):5.1f} mm off (sd {mm(np.sqrt(np.diag(R))):4.1f})  first "
+                  f"{owner.get(j, 'nislam'):7s} {mm(e1):5.1f} mm (sd {mm(np.sqrt(np.diag(R1))):4.1f})")
+        return out
+
+    fused._outliers.check = check_logged  # type: ignore[method-assign]
+    print(f"{name}: frames the outlier check left out (errors against the truth; nan: no ground truth)")
+    for k, ts in enumerate(t):
+        f.k = k
+        fused.track(_Frame(ts), cache["attitude"])  # type: ignore[arg-type]
+
+
 def _line(label: str, s: dict) -> str:
     def mm(v: float | None) -> str:
         return "   -  " if v is None else f"{v * 1e3:6.1f}"
@@ -225,9 +269,10 @@ def main() -> None:
     f.add_argument("caches", nargs="+")
     f.add_argument("--set", action="append", default=[])
     f.add_argument("--alone", action="store_true", help="also score each tracker alone")
-    w = sub.add_parser("why")
-    w.add_argument("caches", nargs="+")
-    w.add_argument("--set", action="append", default=[])
+    for cmd in ("why", "checks"):
+        w = sub.add_parser(cmd)
+        w.add_argument("caches", nargs="+")
+        w.add_argument("--set", action="append", default=[])
     a = ap.parse_args()
     if a.cmd == "record":
         record(a.seq, a.out, a.set)
@@ -239,8 +284,8 @@ def main() -> None:
         with open(path, "rb") as fh:
             cache = pickle.load(fh)
         name = Path(path).stem
-        if a.cmd == "why":
-            why(cache, params, name)
+        if a.cmd in ("why", "checks"):
+            (why if a.cmd == "why" else checks)(cache, params, name)
             continue
         if a.alone:
             for n in TRACKERS:

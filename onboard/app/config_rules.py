@@ -218,6 +218,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "fusion.initial_speed_sd_m_s": POSITIVE,
     "fusion.gate_chi2": POSITIVE,
     "fusion.outlier_chi2": POSITIVE,
+    "fusion.outlier_prior_dof": NON_NEGATIVE,
     "fusion.key_clones": POSITIVE,
     "fusion.noise_adapt_gain": FRACTION,
     "fusion.noise_scale_max": Range(lo=1.0),

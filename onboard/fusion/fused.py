@@ -56,6 +56,7 @@ from scipy.spatial.transform import Rotation
 
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Tracker, TrackResult, TrackState
 from onboard.core.rotations import so3_log
+from onboard.fusion.agreement import OutlierCheck
 from onboard.fusion.displacement import OutputClones
 from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.links import Link, measured_by
@@ -98,6 +99,7 @@ class FusedTracker:
         self.reset_counter = 0
         self.noise_scale = 1.0  # both trackers' covariances times this (_adapt)
         self._nis_mean = 3.0
+        self._outliers = OutlierCheck(params.outlier_chi2, params.outlier_prior_dof, params.noise_adapt_gain)
         self.frames = 0
         self.coasted = 0
         self.last_part_ms: dict[str, float] = {}
@@ -146,7 +148,8 @@ class FusedTracker:
                 "nis_mean": link.nis_sum / link.nis_n if link.nis_n else None,
             }
         return {"frames": self.frames, "frames_coasted": self.coasted,
-                "noise_scale": round(self.noise_scale, 3), "trackers": per}
+                "noise_scale": round(self.noise_scale, 3),
+                "outlier_scale": round(self._outliers.scale, 3), "trackers": per}
 
     # ------------------------------------------------------------- fusion
     def _fuse(self, t_s: float, results: list[TrackResult], attitude: AttitudeSource) -> TrackResult:
@@ -204,11 +207,12 @@ class FusedTracker:
                 # tracker going wild before it reports lost passes the gate
                 # above (`circle`: FastORB 2-4 cm off for three frames moved
                 # the output by 35 mm); against the other tracker it does
-                # not (`outlier_chi2`). A loop closure is exempt: it is meant
-                # to disagree with the other tracker's drift.
+                # not (`outlier_chi2`, widened while the scale of S is still
+                # being learnt: onboard.fusion.agreement). A loop closure is
+                # exempt: it is meant to disagree with the other tracker's drift.
                 after = self.filter.nis(link.anchor_slot, z, R)
                 self._adapt(after)
-                if after > self.p.outlier_chi2 and not link.closing:
+                if self._outliers.check(after) and not link.closing:
                     outliers.append((link, r, z, R, after, m))
                     continue
             self.filter.update(link.anchor_slot, z, R)

@@ -23,6 +23,10 @@ class FusionParams:
     # The second tracker, against the state the first one updated: beyond this it is
     # an outlier (gone wild before it reports lost), left out (the same 99.3 %).
     outlier_chi2: float = 12.0
+    # ... once the scale of the disagreement is known; while it is being learnt
+    # the bound is k F(k, nu) (onboard.fusion.agreement), nu the dof seen plus
+    # these for the trackers' own covariances (3: worth one frame's disagreement).
+    outlier_prior_dof: float = 3.0
     key_clones: int = 24  # fused positions of a tracker's keys kept for it to come back to
     noise_adapt_gain: float = 0.02  # per frame both trackers measure: step of the covariance scale (fused._adapt)
     noise_scale_max: float = 100.0  # ... up to this many times their own figures
