@@ -10,6 +10,9 @@ as before, never by timing: the results stay identical.
 - A key made inside track() (the first, a restart, after a failed match) is
   matched at once, but its colour (for the map only) is gathered after the
   pose: the clouds handed out are those of gathering it in place.
+- A turn that carries the view off the key's grid hands the key over on
+  the last firm frame, after its pose (kept keys tried, or a new key), not
+  on the failed match that follows.
 - The service, bench and replay keep freed memory for the next frame
   (onboard/app/allocator.py): no page faults for arrays made every frame.
 """
@@ -21,7 +24,16 @@ import sys
 
 import numpy as np
 import pytest
-from test_nislam import DT, INTR, Scene, _pan_out_and_back, _params, _rot, _track_poses
+from test_nislam import (
+    DT,
+    INTR,
+    Scene,
+    _errors_mm,
+    _pan_out_and_back,
+    _params,
+    _rot,
+    _track_poses,
+)
 
 from onboard.core.messages import RgbdFrame
 from onboard.nislam import calibration, deferred
@@ -160,7 +172,9 @@ def _clouds(scene: Scene, in_place: bool, monkeypatch) -> tuple[list, list, list
             tracker.finish_frame()
             return r
         tracker.track = track_then_finish  # type: ignore[method-assign]
-        results = _track_poses(tracker, scene, _pan_out_and_back())
+        poses = _pan_out_and_back()
+        poses.append(poses[-1])  # the first frame on the re-used key
+        results = _track_poses(tracker, scene, poses)
         clouds = [c for r in results for c in r.finished_keyframes] + [tracker.finish()]
     return results, clouds, coloured
 
@@ -170,7 +184,7 @@ def test_a_key_made_in_track_gets_its_colour_after_the_pose(scene, monkeypatch):
     got, clouds, coloured = _clouds(scene, False, monkeypatch)
     assert ref_coloured[0] is True  # the first key's colour was on its pose's path
     assert coloured and not any(coloured)  # now never inside track()
-    assert len(coloured) == len(ref_coloured) == sum(r.new_keyframe for r in ref)
+    assert len(coloured) == len(ref_coloured) == sum(r.keyframes_added for r in ref)
     for a, b in zip(ref, got, strict=True):
         assert np.array_equal(a.p_W_m, b.p_W_m) and a.keyframe_id == b.keyframe_id
     assert [c.keyframe_id for c in clouds] == [c.keyframe_id for c in ref_clouds]
@@ -207,3 +221,73 @@ def test_freed_memory_is_kept_for_the_next_frame():
         return int(out.stdout.strip())
     assert faults("glibc") > 20 * 8 * 100
     assert faults("keep") < 100
+
+
+def test_a_firm_frame_leaving_the_grid_tries_kept_keys_after_its_pose(scene, monkeypatch):
+    """The slow pan out to 30 deg (key 1 made at 25 deg, below) and back: near
+    0 deg the frames leave key 1's grid while still matched firmly (PSR ~80)
+    and key 0 is in view again. The frame is posed on key 1 and announces
+    key 2; key 0 is matched in finish_frame() and re-used, so the next frame
+    is measured against it and says so (re-used, key 2 withdrawn)."""
+    inside = [False]
+    matches: list[tuple[bool, int]] = []  # (inside track(), key id)
+    match = NislamTracker._match
+
+    def spy(self, key, *a, **kw):
+        matches.append((inside[0], key.keyframe_id))
+        return match(self, key, *a, **kw)
+
+    monkeypatch.setattr(NislamTracker, "_match", spy)
+    tracker = NislamTracker(INTR, _params(psr_keyframe=5.0, min_valid_fraction=0.5,
+                                          map_keyframes=16))
+    track = tracker.track
+    per_frame: list[list[tuple[bool, int]]] = []
+
+    def track_then_finish(frame, att):
+        matches.clear()
+        inside[0] = True
+        r = track(frame, att)
+        inside[0] = False
+        tracker.finish_frame()
+        per_frame.append(list(matches))
+        return r
+    tracker.track = track_then_finish  # type: ignore[method-assign]
+    out = [(_rot(y=1.0 * k), np.array([0.01 * k, 0.0, 0.0])) for k in range(31)]
+    poses = out + out[-2::-1] + out[:1]
+    results = _track_poses(tracker, scene, poses)
+    left = next(i for i, r in enumerate(results) if r.new_keyframe and r.reference_keyframe_id == 1)
+    assert results[left].psr > 50.0 and results[left].keyframe_id == 2
+    assert per_frame[left] == [(True, 1), (False, 0)]  # key 0 tried after the pose
+    nxt = results[left + 1]
+    assert nxt.reference_keyframe_id == 0 and nxt.keyframe_reused and nxt.keyframe_withdrawn
+    assert sum(r.keyframes_added for r in results) == 2  # keys 0 and 1; 2 never made
+    assert max(np.max(np.abs(e)) for e in _errors_mm(results, poses)) < 5.0
+
+
+def test_a_view_leaving_the_key_grid_hands_over_before_the_match_fails(scene, monkeypatch):
+    """A slow pan (1 deg and 10 mm a frame) with the match firm throughout
+    (PSR > 70) and `min_valid_fraction` at 0.5: the frames cover 0.68 of the
+    key's grid at first and 0.007 less each frame. The key is handed over
+    (a new key, announced) on the frame after which the next would cover
+    less than half, so no match against the current key fails. Before, the
+    frame below half failed its match, and the pose waited for a key made
+    from the frame before and a second match (measured: one failed match at
+    frame 26, no key announced)."""
+    failed: list[int] = []
+    match = NislamTracker._match
+
+    def spy(self, key, *a, **kw):
+        out = match(self, key, *a, **kw)
+        if out is None:
+            failed.append(key.keyframe_id)
+        return out
+
+    monkeypatch.setattr(NislamTracker, "_match", spy)
+    poses = [(_rot(y=1.0 * k), np.array([0.01 * k, 0.0, 0.0])) for k in range(36)]
+    tracker = NislamTracker(INTR, _params(psr_keyframe=5.0, min_valid_fraction=0.5))
+    results = _track_poses(tracker, scene, poses)
+    assert failed == []
+    handed = [i for i, r in enumerate(results) if r.new_keyframe and i > 0]
+    assert len(handed) == 1 and results[handed[0]].psr > 50.0
+    assert results[handed[0] + 1].reference_keyframe_id == results[handed[0]].keyframe_id
+    assert max(np.max(np.abs(e)) for e in _errors_mm(results, poses)) < 5.0

@@ -253,7 +253,7 @@ def track_sequence(
                     out.anchors.add(result)
             else:
                 out.lost_reasons[result.lost_reason or "unknown"] += 1
-            out.keyframes += int(result.new_keyframe)
+            out.keyframes += result.keyframes_added
             out.keyframes_reused += int(result.keyframe_reused)
             out.resets = result.reset_counter
             out.attitude_offset_s = result.attitude_offset_s

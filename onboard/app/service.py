@@ -317,7 +317,7 @@ class Service:
         s.period_frames += 1
         s.frame_ms.add(ms)
         s.period_ms.append(ms)
-        s.keyframes += int(result.new_keyframe)
+        s.keyframes += result.keyframes_added
         s.resets = result.reset_counter
         s.last_psr = result.psr
         self._offset_s = result.attitude_offset_s

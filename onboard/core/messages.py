@@ -136,6 +136,15 @@ class TrackResult:
     # uses it (mavlink_feed._twist). () = not known (the feed falls back to
     # the sum of the two pose_var). The fused tracker: onboard.fusion.displacement.
     displacement_cov: tuple[tuple[float, np.ndarray], ...] = ()
+    # NI-SLAM decides after a pose whether the frame that weakened its key
+    # (new_keyframe) starts a new key or a kept key is re-used instead: True
+    # on the next result when the announced key was not made.
+    keyframe_withdrawn: bool = False
+
+    @property
+    def keyframes_added(self) -> int:
+        """What this result adds to a count of key frames made."""
+        return int(self.new_keyframe) - int(self.keyframe_withdrawn)
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

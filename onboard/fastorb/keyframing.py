@@ -15,12 +15,14 @@ poses are those of the work done in place.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
 
 from onboard.core.messages import KeyframeCloud, RgbdFrame
 from onboard.fastorb.features import Detector, Outcome, Tracked
+from onboard.fastorb.landmark_rate import Unsettled, central_rate, settle, unsettled
 from onboard.fastorb.local_map import (
     CloudGrid,
     Keyframe,
@@ -56,6 +58,9 @@ class KeyframeMaking:
     _next_landmark_id: int
     _frames_since_keyframe: int
     _keyframe_inliers: int
+    _history: deque[tuple[float, np.ndarray]]
+    _t_motion: float
+    _unsettled: list[Unsettled]
 
     def finish_frame(self) -> None:
         """The last frame's work for the next frames (a new key frame, new
@@ -75,7 +80,7 @@ class KeyframeMaking:
 
         def job() -> None:
             self._keyframe_queued = False
-            self._add_keyframe(frame, gray, outcome)
+            self._add_keyframe(frame, gray, outcome, self._poses_around(outcome.T_cw))
             self._tracked = outcome.tracked
 
         self._deferred.append(job)
@@ -84,7 +89,8 @@ class KeyframeMaking:
     def _replenish_after_pose(self, frame: RgbdFrame, gray: np.ndarray, outcome: Outcome) -> None:
         """`_replenish`, queued for `finish_frame()`."""
         def job() -> None:
-            outcome.tracked = self._replenish(frame, gray, outcome.T_cw, outcome.tracked)
+            outcome.tracked = self._replenish(frame, gray, outcome.T_cw, outcome.tracked,
+                                              self._poses_around(outcome.T_cw))
             self._tracked = outcome.tracked
 
         self._deferred.append(job)
@@ -97,20 +103,25 @@ class KeyframeMaking:
         return -1 if kf is None else kf.keyframe_id
 
     def _replenish(
-        self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: Tracked
+        self, frame: RgbdFrame, gray: np.ndarray, T_cw: np.ndarray, tracked: Tracked,
+        around: tuple[np.ndarray, float, float] | None = None,
     ) -> Tracked:
         """Fewer than redetect_min_inliers: ORB detection only (no descriptors)
         where no tracked point is, new landmarks from depth."""
         feats = self._detector.detect(gray, with_descriptors=False, avoid=tracked.uv)
-        new, _ = self._landmarks(frame, T_cw, feats.uv[self._detector.free(tracked.uv, feats.uv)])
+        new, _ = self._landmarks(frame, T_cw, feats.uv[self._detector.free(tracked.uv, feats.uv)],
+                                 around)
         room = max(self.p.orb_features - len(tracked), 0)
         return tracked.extended(new.subset(slice(0, room)))
 
     def _landmarks(
-        self, frame: RgbdFrame, T_cw: np.ndarray, uv: np.ndarray
+        self, frame: RgbdFrame, T_cw: np.ndarray, uv: np.ndarray,
+        around: tuple[np.ndarray, float, float] | None = None,
     ) -> tuple[Tracked, np.ndarray]:
         """New landmarks (fresh ids) for those pixels `uv` that have usable
-        depth, and which those were (bool (N,))."""
+        depth, and which those were (bool (N,)). With the pose before this
+        one, `around` = (T_prev, t_prev, t_now), they are settled with the
+        poses' rate once the next frame is posed (landmark_rate.py)."""
         z = sample_depth(frame.depth_m, uv, self.p.min_depth_m, self.p.max_depth_m,
                          self.p.depth_edge_rel)
         ok = z > 0
@@ -120,7 +131,73 @@ class KeyframeMaking:
         p_C = points_at_mid(uv[ok], z[ok], self.K, self._xi, self.p.rolling_shutter_readout_s,
                             self._size[1])
         xyz = (p_C - T_cw[:3, 3]) @ T_cw[:3, :3]  # R^T (p_C - t), row-wise
+        if around is not None and n:
+            T_prev, t_prev, t_now = around
+            self._unsettled.append(unsettled(
+                ids, uv[ok], z[ok], self.K, self._xi[:3], self.p.rolling_shutter_readout_s,
+                self._size[1], T_cw, t_now, T_prev, t_prev))
         return Tracked(uv[ok].astype(np.float32), xyz, ids), ok
+
+    # ------------------------------------------- landmarks settled (landmark_rate.py)
+    def _poses_around(self, T_cw: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+        """(T_prev, t_prev, t_now) when the posed frame T_cw (the newest in
+        the motion model) has a pose before it and its landmarks are to be
+        settled with the poses' rate (a rolling shutter); else None."""
+        if (not self.p.rolling_shutter_settle_landmarks or not self.p.rolling_shutter_readout_s
+                or len(self._history) < 2 or self._history[-1][1] is not T_cw):
+            return None
+        (t_prev, T_prev), (t_now, _) = self._history[-2], self._history[-1]
+        return T_prev, t_prev, t_now
+
+    def _settle_after_pose(self, outcome: Outcome) -> None:
+        """The last posed frame's new landmarks, moved to where the central
+        difference of the poses on both sides of it (the previous one and
+        this frame's `outcome.T_cw`) puts them; queued for `finish_frame()`
+        ahead of this frame's own key-frame work, which may take them over.
+        Landmarks of a frame that is not this one's direct predecessor in the
+        motion model (a coasted frame between, a loss, a loop correction that
+        moved the poses) stay as they were made."""
+        pending, self._unsettled = self._unsettled, []
+        if not pending or not self._history:
+            return
+        last = self._history[-1][1]
+        pending = [u for u in pending if u.T_cw is last]
+        if not pending:
+            return
+        T_next, t_next = outcome.T_cw, self._t_motion
+
+        def job() -> None:
+            ids, moves = [], []
+            for u in pending:
+                ids.append(u.ids)
+                moves.append(settle(u, central_rate(u, T_next, t_next)))
+            self._move_landmarks(np.concatenate(ids), np.concatenate(moves), outcome)
+
+        self._deferred.insert(0, job)
+
+    def _move_landmarks(self, ids: np.ndarray, moves: np.ndarray, outcome: Outcome) -> None:
+        """Landmarks `ids` moved by `moves` (world) in the tracked set and in
+        the newest key frames (the one that made them, if any)."""
+        order = np.argsort(ids)
+        ids, moves = ids[order], moves[order]
+        trk = outcome.tracked
+        pos = np.minimum(np.searchsorted(ids, trk.ids), len(ids) - 1)
+        hit = ids[pos] == trk.ids
+        if hit.any():
+            trk.xyz_W = trk.xyz_W.copy()
+            trk.xyz_W[hit] += moves[pos[hit]]
+        changed = False
+        for kf in self._map.newest_first(2):
+            pos = np.minimum(np.searchsorted(ids, kf.ids), len(ids) - 1)
+            hit = ids[pos] == kf.ids
+            if hit.any():
+                xyz = kf.xyz_W.copy()
+                xyz[hit] += moves[pos[hit]]
+                kf.xyz_W = xyz  # replaced, never written in place (loop.py keeps references)
+                self.loops.points_moved(kf)
+                changed = True
+        if changed:
+            self._map.changed()
 
     # ------------------------------------------------------------ key frames
     def _keyframe_due(self, n_inliers: int) -> bool:
@@ -143,7 +220,8 @@ class KeyframeMaking:
         self._add_keyframe(frame, gray, outcome)
         return () if finished is None else (finished,)
 
-    def _add_keyframe(self, frame: RgbdFrame, gray: np.ndarray, outcome: Outcome) -> None:
+    def _add_keyframe(self, frame: RgbdFrame, gray: np.ndarray, outcome: Outcome,
+                      around: tuple[np.ndarray, float, float] | None = None) -> None:
         """The posed frame with descriptors becomes a key frame (step 7). A
         keypoint on a tracked point takes its landmark, the others get new
         ones from depth; those away from tracked points join the tracked set."""
@@ -151,7 +229,7 @@ class KeyframeMaking:
         assert feats is not None and feats.desc is not None
         tracked = outcome.tracked
         on = self._detector.pair_with(tracked.uv, feats.uv, 1.5)
-        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0])
+        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0], around)
         kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on < 0)[has_depth]])
         kf_pts = tracked.subset(on[on >= 0]).extended(fresh)
         free = self._detector.free(tracked.uv, fresh.uv)

@@ -158,6 +158,17 @@ class LoopClosing:
         if self.enabled:
             self._pending.append(kf.keyframe_id)
 
+    def points_moved(self, kf: Keyframe) -> None:
+        """The key frame's landmarks were moved from their first estimate
+        before the back end moved its pose (landmark_rate.py): its record's
+        camera points follow, as on_keyframe would have taken them."""
+        k = self._index.get(kf.keyframe_id)
+        if k is None or self._records[k].T_cw is not kf.T_cw:
+            return
+        rec = self._records[k]
+        if np.array_equal(rec.ids, kf.ids):
+            rec.p_C = kf.xyz_W @ kf.T_cw[:3, :3].T + kf.T_cw[:3, 3]
+
     def _take_in(self, k: int) -> None:
         """Record k (the next in order) into the place index and the strong
         covisibility links with the recent ones."""

@@ -48,6 +48,7 @@ from onboard.fastorb import refine_kernels
 from onboard.fastorb.bundle import BaSettings
 from onboard.fastorb.features import Detector, Outcome, Tracked, outcome_result
 from onboard.fastorb.keyframing import KeyframeMaking
+from onboard.fastorb.landmark_rate import Unsettled
 from onboard.fastorb.local_map import CloudGrid, Keyframe, LocalMap
 from onboard.fastorb.loop import LoopClosing, LoopSettings, PlaceSettings
 from onboard.fastorb.map_tracking import MapTracking
@@ -113,6 +114,7 @@ class FastOrbTracker(KeyframeMaking):
         self._unfinished: Keyframe | None = None  # newest key, cloud not handed over yet
         self._unfinished_grid: CloudGrid | None = None  # ... its cloud but for the pose
         self._deferred: list[Callable[[], None]] = []  # for after the pose (finish_frame)
+        self._unsettled: list[Unsettled] = []  # the last posed frame's new landmarks (landmark_rate.py)
         self._keyframe_queued = False
         self._next_keyframe_id = 0
         self._next_landmark_id = 0
@@ -193,6 +195,7 @@ class FastOrbTracker(KeyframeMaking):
             log.debug("t=%.3f: no pose from %d followed points", frame.t_s, len(moved))
             return self._coast_or_lose(frame.t_s, prior, moved)
         self._coasted = 0
+        self._settle_after_pose(outcome)  # the last frame's new landmarks, with this pose
         self._rate = self._maptrack.rate  # measured by the rows' shear (None: global shutter)
         if self._rate is not None:
             self._xi = np.concatenate([self._rate, self._xi[3:]])

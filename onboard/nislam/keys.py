@@ -92,6 +92,7 @@ class Key:
     slot: KeySlot
     layers: "RotationResidual | None" = None
     shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
+    coverage: list[float] = field(default_factory=list)  # last two frames' share of the grid covered
 
     @property
     def gray_ref(self) -> np.ndarray:

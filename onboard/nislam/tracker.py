@@ -106,6 +106,7 @@ class NislamTracker:
             params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
         )
         self._deferred = Deferred()  # steps 5 and 6, for after the pose (deferred.py)
+        self._reused_after_pose: int | None = None  # the kept key re-used after the last pose
         # A cell's depth: the mean of its front surface's points (kernels.zbuffer_project)
         self._front = (params.depth_front_mean_m, 3.0 * params.depth_sigma_rel
                        if params.depth_front_mean_m > 0 else 0.0)
@@ -127,9 +128,17 @@ class NislamTracker:
         refinement, Eq. 19; the new key's projection, filter and map entry,
         Eq. 17): called after the pose went out. The same operations in the
         same order as if done inside track(), so the poses are identical."""
-        self._deferred.run()
+        while self._deferred:  # a re-use's matches queue the re-used key's refinement
+            self._deferred.run()
 
     def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
+        """Track one frame (`_track`), after the last frame's deferred work."""
+        self.finish_frame()  # the last frame's, if the caller did not
+        reused_key, self._reused_after_pose = self._reused_after_pose, None
+        result = self._track(frame, attitude, reused_key)
+        return result if reused_key is None else dataclasses.replace(result, keyframe_withdrawn=True)
+
+    def _track(self, frame: RgbdFrame, attitude: AttitudeSource, reused_key: int | None) -> TrackResult:
         """Track one frame; attitude is looked up at the capture time + offset.
 
         A frame whose depth was captured at another instant than its colour
@@ -138,7 +147,6 @@ class NislamTracker:
         up to 20 ms apart does not shift the texture against the geometry by
         the rotation in between (at 60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m).
         The result keeps the frame's stamp and its colour-time attitude."""
-        self._deferred.run()  # the last frame's, if finish_frame() was not called
         offset_s = self._calib.offset_s  # the one this frame is tracked with (and reports)
         t_att = frame.t_s + offset_s
         r_cur = attitude.rotation_at(t_att)
@@ -173,6 +181,9 @@ class NislamTracker:
         outcome = self._match(key, cloud, t_g, r_g, attitude, t_att)
         reused = False
         if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
+            # A failed or weakened match (it may have slid off the true
+            # shift, as on blank-turn and yaw-spin): the kept keys are tried
+            # before the pose, which takes a firm one's match.
             found = self._reuse(key, outcome, cloud, t_g, r_g, attitude, t_att)
             if found is not None:
                 finished.append(self._key_cloud(key))
@@ -193,20 +204,28 @@ class NislamTracker:
         self._prev = _Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3])
         self._last_trusted_p = outcome.p_W_m
-        new_key = peak.psr < self.p.psr_keyframe  # Eq. 17
+        new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
+        leaving = not new_key and self._leaving_grid(key)
         key_id = self._key.keyframe_id
         n_link = self.p.link_every_n_frames
-        if n_link > 0 and not new_key and not reused and self._frame_count % n_link == 0:
+        if n_link > 0 and not (new_key or leaving or reused) and self._frame_count % n_link == 0:
             self._deferred.add(None, lambda: self._link(key, outcome, cloud, t_g, r_g, attitude,
                                                         t_att))
-        if new_key:
+        if new_key or leaving:
             # The switching frame is posed against the old key, then becomes the
             # key with that pose (ref. "Per-frame order", step 6): made after
             # the pose went out (finish_frame); the old key's cloud goes now.
+            # A frame still matched firmly but leaving the key's grid tries
+            # the kept keys first, after its pose too: its pose does not
+            # depend on them.
             finished.append(self._key_cloud(self._key))
             key_id = self._next_key_id
             prev = self._prev
-            self._deferred.add(None, lambda: self._new_key_from(prev, hand_over=False))
+            if new_key:
+                self._deferred.add(None, lambda: self._new_key_from(prev, hand_over=False))
+            else:
+                self._deferred.add(None, lambda: self._reuse_or_new_key(
+                    key, outcome, prev, attitude, t_att))
         att_var = attitude_lateral_var_m2(outcome.depth.z_mean_m, self.p.attitude_sd_deg)
         return TrackResult(
             t_s=frame.t_s,
@@ -218,7 +237,7 @@ class NislamTracker:
             quality=quality_from_psr(peak.psr, self.p.psr_lost, self.p.psr_refine),
             psr=peak.psr,
             keyframe_id=key_id,
-            new_keyframe=new_key,
+            new_keyframe=new_key or leaving,
             reset_counter=self._reset_counter,
             lost_reason=None,
             shift_cells=(peak.du_cells, peak.dv_cells),
@@ -228,7 +247,7 @@ class NislamTracker:
             attitude_offset_s=offset_s,
             matched_cells=outcome.depth.matched,
             finished_keyframes=tuple(finished),
-            keyframe_reused=reused,
+            keyframe_reused=reused or key.keyframe_id == reused_key,
             reference_keyframe_id=key.keyframe_id,
             reference_offset_m=outcome.p_W_m - key.p_W_m,
             attitude_var_m2=att_var,
@@ -252,6 +271,20 @@ class NislamTracker:
             log.info("key re-use moved the position by %.3f m: reset %d", jump_m,
                      self._reset_counter)
 
+    def _leaving_grid(self, key: Key) -> bool:
+        """A turn carries the view off the key's grid: each frame covers less
+        of it while the match stays firm (on `circle` PSR 35-55 down to the
+        last frame), and the first frame below `min_valid_fraction` fails the
+        match. When the next frame, extrapolated from the last two, would
+        fall below it, the key is handed over now, after this firm frame's
+        pose, as Eq. 17 does, instead of on that failed match: then the pose
+        waited for the kept keys, a new key made from the frame before and a
+        second match."""
+        if len(key.coverage) < 2:
+            return False
+        before, now = key.coverage
+        return 2.0 * now - before < self.p.min_valid_fraction
+
     def _coasted_too_long(self, t_s: float) -> bool:
         """No trusted pose for longer than `max_coast_s`: the key is not
         matched again (a window that wide invites a look-alike peak)."""
@@ -259,7 +292,7 @@ class NislamTracker:
 
     def finish(self) -> KeyframeCloud | None:
         """Flush the current key's refined cloud (end of a run)."""
-        self._deferred.run()
+        self.finish_frame()
         return None if self._key is None else self._key_cloud(self._key)
 
     # ------------------------------------------------------------ matching
@@ -278,7 +311,8 @@ class NislamTracker:
         r_key = key.R_W_C if r_key is None else r_key
         r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
         img = project(cloud, r_rel, self.shape, key.img.res_m, front=self._front)
-        if img.mask.sum() < self.p.min_valid_fraction * img.mask.size:
+        covered = float(img.mask.mean())
+        if covered < self.p.min_valid_fraction:
             return None
         # The search window grows with the time since the last match, so a
         # stalled loop or dropped frames widen it instead of losing the key.
@@ -315,6 +349,7 @@ class NislamTracker:
             frac = (peak.du_cells - du, peak.dv_cells - dv)
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m, frac))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
+        key.coverage = [*key.coverage[-1:], covered]
         return self._pose(key, peak, depth, theta_img)
 
     def _fit_residual(self, key: Key, img: AxonometricImage, peak: Peak, tz_m: float,
@@ -366,7 +401,7 @@ class NislamTracker:
             r_cur, p_guess, key.keyframe_id, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
             self.p.reuse_candidates,
         ):
-            cand.shifts = []  # no motion prior against a key not matched for a while: search it all
+            cand.shifts, cand.coverage = [], []  # not matched for a while: search it all
             o = self._match(cand, cloud, t_s, r_cur, attitude, t_att)
             if o is not None and o.peak.psr >= self.p.psr_keyframe:
                 if best is None or o.peak.psr > best[1].peak.psr:
@@ -383,6 +418,25 @@ class NislamTracker:
         self._key = cand
         self._map.use(cand)
         return cand, dataclasses.replace(o, p_W_m=cand.p_W_m + d_cand)
+
+    def _reuse_or_new_key(self, key: Key, outcome: _Match, prev: _Prev,
+                          attitude: AttitudeSource, t_att: float) -> None:
+        """After the pose of a frame leaving its key's grid (`_leaving_grid`):
+        a kept key that matches it firmly becomes the key again (the next
+        frame says `keyframe_reused` and `keyframe_withdrawn`), otherwise the
+        frame becomes the key (Eq. 17). The key id the frame announced is used
+        up either way, so an id never names two keys."""
+        found = self._reuse(key, outcome, prev.cloud, prev.t_s, prev.R_W_C, attitude, t_att)
+        if found is None:
+            self._new_key_from(prev, hand_over=False)
+            return
+        self._next_key_id += 1
+        cand, o = found
+        self._count_jump(o.p_W_m, prev.t_s)
+        self._prev = _Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
+                           o.pose_var[:3])
+        self._last_trusted_p = o.p_W_m
+        self._reused_after_pose = cand.keyframe_id
 
     def _rate_difference(
         self, key: Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float

@@ -308,7 +308,7 @@ class ZenohOutput:
             p["tracked"] += 1
         else:
             c["frames_lost"] += 1
-        c["keyframes"] += int(result.new_keyframe)
+        c["keyframes"] += result.keyframes_added
         if math.isfinite(result.psr):
             p["psr_sum"] += result.psr
             p["psr_n"] += 1
