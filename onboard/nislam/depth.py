@@ -55,6 +55,7 @@ def depth_translation(
             key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
             p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
             p.depth_sigma_rel, p.depth_sigma_floor_m, p.depth_subcell, step, p.depth_gate_sigmas,
+            p.depth_slope_limited,
         )
 
     sums = sums_at(p.depth_cell_step)

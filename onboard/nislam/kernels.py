@@ -222,6 +222,39 @@ def _slope(depth: np.ndarray, mask: np.ndarray, i: int, j: int, di: int, dj: int
     return 0.0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _side_slope(depth: np.ndarray, mask: np.ndarray, i: int, j: int, di: int, dj: int) -> tuple[float, bool]:
+    """Depth change per cell from (i, j) toward (di, dj), from the nearest
+    filled cell within 2 on that side; (0, False) when there is none."""
+    h, w = depth.shape
+    for k in range(1, 3):
+        i1, j1 = i + k * di, j + k * dj
+        if i1 < 0 or j1 < 0 or i1 >= h or j1 >= w:
+            break
+        if mask[i1, j1] > 0:
+            return (depth[i1, j1] - depth[i, j]) / (k * (di + dj)), True
+    return 0.0, False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _limited_slope(depth: np.ndarray, mask: np.ndarray, i: int, j: int, di: int, dj: int) -> tuple[float, float]:
+    """The surface's slope at (i, j) along (di, dj) for the carry, and the
+    spread of the two one-sided slopes. Both sides filled: the smaller
+    one-sided slope if they agree in sign, else 0 (minmod: at a depth edge
+    one side is another surface and the flat side is the cell's), and
+    |hi - lo| says how unsure the carry is (an edge, or noise). One side:
+    its slope, spread 0. A central difference across an edge is half the
+    jump, and the carry moved the cell by the sub-cell part times that."""
+    hi, has_hi = _side_slope(depth, mask, i, j, di, dj)
+    lo, has_lo = _side_slope(depth, mask, i, j, -di, -dj)
+    if has_hi and has_lo:
+        spread = abs(hi - lo)
+        if hi * lo <= 0.0:
+            return 0.0, spread
+        return (hi if abs(hi) < abs(lo) else lo), spread
+    return (hi if has_hi else lo), 0.0
+
+
 # Index of each sum in depth_difference_sums' result; with weights, every sum
 # but N (the count of cells) is weighted and SUM_W is the sum of the weights.
 N, SUM_D, SUM_DD, SUM_ZKEY, SUM_X, SUM_Y, SUM_XX, SUM_YY, SUM_XY, SUM_DX, SUM_DY, SUM_W = range(12)
@@ -248,6 +281,7 @@ def depth_difference_sums(
     carry: bool = False,
     step: int = 2,
     gate_sigmas: float = 0.0,
+    limited: bool = False,
 ) -> np.ndarray:
     """Sums over the well-matched cells of Eq. 18, every other row and column
     of the overlap (current cell p + (du, dv) against key cell p).
@@ -301,8 +335,14 @@ def depth_difference_sums(
             wt = 1.0
             gate = gate_depth_m
             if carry:
-                gx = _slope(key_depth, key_mask, i, j, 0, 1)
-                gy = _slope(key_depth, key_mask, i, j, 1, 0)
+                spread2 = 0.0
+                if limited:  # kernels._limited_slope; its spread into the variance
+                    gx, sx = _limited_slope(key_depth, key_mask, i, j, 0, 1)
+                    gy, sy = _limited_slope(key_depth, key_mask, i, j, 1, 0)
+                    spread2 = sx * sx + sy * sy
+                else:
+                    gx = _slope(key_depth, key_mask, i, j, 0, 1)
+                    gy = _slope(key_depth, key_mask, i, j, 1, 0)
                 d += frac_u * gx + frac_v * gy
                 if weighted:
                     # The noise's depth from both images (current moved into
@@ -312,7 +352,7 @@ def depth_difference_sums(
                     # enter Delta with opposite signs and cancel in the mean.
                     z = 0.5 * (key_depth[i, j] + cur_depth[i + dv, j + du] - med)
                     sz = max(sigma_rel * z * z, sigma_floor_m)
-                    wt = 1.0 / (sz * sz + (gx * gx + gy * gy) / 6.0)
+                    wt = 1.0 / (sz * sz + (gx * gx + gy * gy) / 6.0 + spread2)
                     # The gate no narrower than gate_sigmas times the noise of
                     # the difference: at 5 m (52 mm) a fixed 0.1 m cuts the
                     # noise at 2 sigma around a median of ~100 sampled cells,
@@ -409,6 +449,8 @@ def warm_up() -> None:
                           0.0015, 0.0, True, 2)
     depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1, 0.1, 0.1,
                           0.0015, 0.001, True, 2, 4.0)
+    depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1, 0.1, 0.1,
+                          0.0015, 0.001, True, 2, 4.0, True)
     refine_key(f32.copy(), f32.copy(), f32.copy(), f32, f32, f32, 0, 0, 0.1, 0.1, 0.0, 0.1)
     strided_depth_gray(np.zeros((4, 4, 3), np.uint8), f32, 2, 0.2, 6.0)
     warped_gray(np.zeros((4, 4, 3), np.uint8), 2, np.eye(3))

@@ -74,6 +74,7 @@ class NislamParams:
     # noise is cut symmetrically about the true t_z, not about the median's
     # error (docs/nislam-error-budget.md, "The axial part, split"); 0 = fixed
     depth_gate_sigmas: float = 4.0
+    depth_slope_limited: bool = False  # carry along the minmod slope, its one-sided spread in the variance (kernels._limited_slope)
     depth_sigma_floor_m: float = 0.001  # floor (depth quantisation, ~1 mm); 0 = unweighted (docs/nislam-error-budget.md)
     depth_time_compensation: bool = False  # gray taken through the rotation between colour and depth stamps (off: a noisy attitude makes that rotation noise, docs/nislam-error-budget.md)
     # Colour rows exposed one after another over this time (top first); 0 = a
