@@ -116,7 +116,7 @@ def score_flight(
     same[1:] = ref[1:] == ref[:-1]
     d = np.diff(inc_err, axis=0, prepend=np.nan)[same]
     d = d[np.isfinite(d).all(axis=1)]
-    new = sum(1 for r in rows if r.new_keyframe)
+    new = sum(r.keyframes_added for r in rows)
     return {
         "rpe1": m.rpe_lag1_m, "rpe3": m.rpe_lag3_m, "rpe10": m.rpe_lag10_m, "rpe30": m.rpe_lag30_m,
         "lat": float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))) if len(d) else float("nan"),

@@ -111,8 +111,10 @@ def bench(
             frame_ms.append(dt_ms)
             if len(results) < len(frames):
                 results.append(result)
+            # (a re-use decided after the last pose is a plain match here)
             kind = ("keyframe" if result.new_keyframe
-                    else "reused" if result.keyframe_reused else "plain")
+                    else "reused" if result.keyframe_reused and not result.keyframe_withdrawn
+                    else "plain")
             kind_ms[kind].append(dt_ms)
             kind_cpu_ms[kind].append(cpu_ms[-1])
             if finish_frame is not None:

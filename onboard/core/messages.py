@@ -136,7 +136,7 @@ class TrackResult:
     # uses it (mavlink_feed._twist). () = not known (the feed falls back to
     # the sum of the two pose_var). The fused tracker: onboard.fusion.displacement.
     displacement_cov: tuple[tuple[float, np.ndarray], ...] = ()
-    # NI-SLAM decides after a pose whether the frame that weakened its key
+    # NI-SLAM decides after a pose whether a firm frame leaving its key's grid
     # (new_keyframe) starts a new key or a kept key is re-used instead: True
     # on the next result when the announced key was not made.
     keyframe_withdrawn: bool = False

@@ -22,12 +22,14 @@ Gelman et al., Bayesian Data Analysis, ch. 2-3) starts from the trackers'
 own covariances, worth `outlier_prior_dof` dof (scale 1), and forgets at the
 agreement scale's own rate (`noise_adapt_gain`), since S is rescaled at that
 rate and older disagreements say less about it. A frame beyond the bound
-adds only the bound (censored): a wild pose widens the check no more than an
+adds only the bound (clipped, winsorised): a wild pose widens the check no more than an
 honest frame at the bound would (counted at its d^2, a frame a thousand
 times off would open it for the next wild one).
 """
 
 from __future__ import annotations
+
+import math
 
 from scipy.special import chdtrc, fdtri
 
@@ -49,7 +51,7 @@ class OutlierCheck:
         for the agreement scale (a quality signal sees a match's noise, real
         data only adds to it). So the bound is never tighter than chi2(k)'s:
         this check only lets through what the fixed bound took for an outlier."""
-        return max(1.0, self.sum / self.dof) if self.dof > 0.0 else float("inf")
+        return max(1.0, self.sum / self.dof) if self.dof > 0.0 else 1.0
 
     def bound(self) -> float:
         """d^2 beyond which a frame is an outlier: lambda_hat k F^-1(1 - tail; k, nu)."""
@@ -59,9 +61,9 @@ class OutlierCheck:
 
     def check(self, d2: float) -> bool:
         """Whether d2 is an outlier; the frame then counts towards the scale
-        with the bound (censored), otherwise with d2."""
+        with the bound (clipped), otherwise with d2."""
         b = self.bound()
-        if d2 != d2:  # NaN: no test, nothing learnt (as fused._adapt)
+        if math.isnan(d2):  # NaN: no test, nothing learnt (as fused._adapt)
             return False
         out = d2 > b
         g = self.forget

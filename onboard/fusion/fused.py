@@ -212,7 +212,7 @@ class FusedTracker:
                 # exempt: it is meant to disagree with the other tracker's drift.
                 after = self.filter.nis(link.anchor_slot, z, R)
                 self._adapt(after)
-                if self._outliers.check(after) and not link.closing:
+                if not link.closing and self._outliers.check(after):
                     outliers.append((link, r, z, R, after, m))
                     continue
             self.filter.update(link.anchor_slot, z, R)

@@ -5,7 +5,8 @@ match weakens (PSR < T_r, Eq. 17); each new key inherits the pose error of the
 frame that started it, so errors add up key after key. A drone hovering and
 looking around, or a hand-held camera sweeping back and forth, keeps coming
 back to views it has keys for. `KeyframeMap` keeps the recent keys; when the
-current key weakens, the tracker first tries the keys that look the same way
+current key weakens (or, after a firm frame's pose, the view is about to leave
+its grid), the tracker first tries the keys that look the same way
 from about the same place, and re-uses one that matches well instead of
 starting a new key.
 
