@@ -311,3 +311,49 @@ def test_poses_go_at_a_higher_priority_than_key_frames() -> None:
     # zenoh.Priority as an int: smaller is more urgent (REAL_TIME = 1).
     assert int(pose) < int(status) < int(kf["priority"])
     assert (pose, kf["priority"]) == (zenoh.Priority.INTERACTIVE_HIGH, zenoh.Priority.DATA_LOW)
+
+
+class _NoSession:
+    """Just enough of a zenoh session for a GroundStation fed by hand: every
+    map query answers nothing (the vehicle's key frames are out of reach)."""
+
+    class _Entity:
+        def undeclare(self) -> None:
+            pass
+
+    def declare_subscriber(self, *_a, **_kw) -> _Entity:
+        return self._Entity()
+
+    declare_queryable = declare_subscriber
+
+    def liveliness(self) -> _NoSession:
+        return self
+
+    def get(self, *_a, **_kw) -> list:
+        return []
+
+
+def test_a_map_behind_the_last_status_is_fetched_again_without_another_status() -> None:
+    """The vehicle's last status (say, just before it lands) names a key
+    frame the ground lacks, but came within REFETCH_S of the last fetch: the
+    station fetches again once REFETCH_S has passed, with no further status.
+    Before, it waited for a status that never came and kept 8 of 9 key frames
+    (test_fleet's router restart under load)."""
+    from onboard.outputs.ground import REFETCH_S
+
+    now = [100.0]
+    station = GroundStation(_NoSession(), clock=lambda: now[0])  # type: ignore[arg-type]
+    try:
+        station.events.put(("status", "v1", {"map_digest": map_digest({0: 1})}, 10, None))
+        pump(station, lambda: "v1" in station.vehicles and station.vehicles["v1"].fetches == 1
+             and not station.vehicles["v1"].fetching, "the discovery fetch done")
+        v = station.vehicles["v1"]
+        assert v.last_status and v.digest() != v.last_status["map_digest"]
+        now[0] += 0.5 * REFETCH_S
+        station.step(0.01)
+        assert v.fetches == 1  # not sooner than REFETCH_S after the last
+        now[0] += REFETCH_S
+        station.step(0.01)
+        assert v.fetches == 2
+    finally:
+        station.close()

@@ -225,6 +225,7 @@ class GroundStation:
 
     def step(self, timeout_s: float) -> bool:
         """Handle one event (waiting up to timeout_s); False if none came."""
+        self._refetch_due()
         try:
             kind, vid, item, size, extra = self.events.get(timeout=timeout_s)
         except queue.Empty:
@@ -250,6 +251,18 @@ class GroundStation:
                     v.keyframes[kf.keyframe_id] = kf
                     v.crcs[kf.keyframe_id] = crc
         return True
+
+    def _refetch_due(self) -> None:
+        """A vehicle whose last status says its map is ahead of ours is
+        fetched again once `REFETCH_S` has passed since the last fetch,
+        without waiting for another status: key frames put while a router
+        was down are lost on the wire, and a vehicle about to land may send
+        no further status (a router restarted under load: 8 of 9 key frames)."""
+        now = self.clock()
+        for v in self.vehicles.values():
+            if (not v.fetching and now - v.last_fetch_s > REFETCH_S
+                    and v.last_status.get("map_digest") not in (None, v.digest())):
+                self._request_fetch(v)
 
     def _pose(self, v: Vehicle, m: dict[str, Any], size: int, recv_unix_s: float) -> None:
         v.bytes["pose"] += size
