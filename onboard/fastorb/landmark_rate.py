@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.fastorb.shutter import row_times, twist_rate
+from onboard.fastorb.shutter import back_project, row_times, twist_rate
 
 
 @dataclass(frozen=True)
@@ -51,11 +51,7 @@ def unsettled(ids: np.ndarray, uv: np.ndarray, z: np.ndarray, K: np.ndarray, ome
     """The record `settle` needs for landmarks `ids` made from pixels `uv`
     at depths `z` (the ids come in ascending order from the tracker)."""
     uv = np.asarray(uv, np.float64)
-    z = np.asarray(z, np.float64)
-    p = np.empty((len(uv), 3))
-    p[:, 0] = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
-    p[:, 1] = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
-    p[:, 2] = z
+    p = back_project(uv, np.asarray(z, np.float64), K)
     return Unsettled(np.asarray(ids, np.int64), p, row_times(uv[:, 1], readout_s, height_px),
                      np.asarray(omega, np.float64)[:3].copy(), T_cw, t_s, T_prev, t_prev)
 

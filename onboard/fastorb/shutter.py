@@ -40,6 +40,15 @@ def row_times(v: np.ndarray, readout_s: float, height_px: int) -> np.ndarray:
     return readout_s * (np.asarray(v, np.float64) / height_px - 0.5)
 
 
+def back_project(uv: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera points (N, 3) of pixels `uv` (float64) at depths `z`."""
+    p = np.empty((len(uv), 3))
+    p[:, 0] = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
+    p[:, 1] = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
+    p[:, 2] = z
+    return p
+
+
 def points_at_mid(
     uv: np.ndarray, z: np.ndarray, K: np.ndarray, xi: np.ndarray, readout_s: float,
     height_px: int,
@@ -47,11 +56,7 @@ def points_at_mid(
     """Camera points (N, 3) of pixels `uv` at depths `z`, each moved from its
     row's instant to the middle row's: p_v - tau_v (phi x p_v + rho)."""
     uv = np.asarray(uv, np.float64)
-    z = np.asarray(z, np.float64)
-    p = np.empty((len(uv), 3))
-    p[:, 0] = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
-    p[:, 1] = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
-    p[:, 2] = z
+    p = back_project(uv, np.asarray(z, np.float64), K)
     if readout_s == 0.0 or not np.any(xi):
         return p
     tau = row_times(uv[:, 1], readout_s, height_px)[:, None]
