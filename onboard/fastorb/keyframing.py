@@ -180,19 +180,25 @@ class KeyframeMaking:
         the newest key frames (the one that made them, if any)."""
         order = np.argsort(ids)
         ids, moves = ids[order], moves[order]
+
+        def moved(their_ids: np.ndarray, xyz_W: np.ndarray) -> np.ndarray | None:
+            """A copy of `xyz_W` with the moved landmarks moved; None if none is there."""
+            pos = np.minimum(np.searchsorted(ids, their_ids), len(ids) - 1)
+            hit = ids[pos] == their_ids
+            if not hit.any():
+                return None
+            xyz = xyz_W.copy()
+            xyz[hit] += moves[pos[hit]]
+            return xyz
+
         trk = outcome.tracked
-        pos = np.minimum(np.searchsorted(ids, trk.ids), len(ids) - 1)
-        hit = ids[pos] == trk.ids
-        if hit.any():
-            trk.xyz_W = trk.xyz_W.copy()
-            trk.xyz_W[hit] += moves[pos[hit]]
+        xyz = moved(trk.ids, trk.xyz_W)
+        if xyz is not None:
+            trk.xyz_W = xyz
         changed = False
         for kf in self._map.newest_first(2):
-            pos = np.minimum(np.searchsorted(ids, kf.ids), len(ids) - 1)
-            hit = ids[pos] == kf.ids
-            if hit.any():
-                xyz = kf.xyz_W.copy()
-                xyz[hit] += moves[pos[hit]]
+            xyz = moved(kf.ids, kf.xyz_W)
+            if xyz is not None:
                 kf.xyz_W = xyz  # replaced, never written in place (loop.py keeps references)
                 self.loops.points_moved(kf)
                 changed = True

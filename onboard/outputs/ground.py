@@ -70,6 +70,7 @@ class Vehicle:
     first_seen_s: float = 0.0
     last_seen_s: float = 0.0
     fetching: bool = False
+    behind: bool = False  # its last status names a map other than ours (set per status and fetch)
     last_fetch_s: float = -1e9
     fetches: int = 0
     period_poses: int = 0  # poses since the last table
@@ -242,6 +243,7 @@ class GroundStation:
                 kf, crc = item
                 v.keyframes[kf.keyframe_id] = kf
                 v.crcs[kf.keyframe_id] = crc
+                v.behind = self._behind(v)
         elif kind == "alive":
             v.alive = item
         elif kind == "fetched":
@@ -250,6 +252,7 @@ class GroundStation:
                 if self._current(v, boot):
                     v.keyframes[kf.keyframe_id] = kf
                     v.crcs[kf.keyframe_id] = crc
+            v.behind = self._behind(v)
         return True
 
     def _refetch_due(self) -> None:
@@ -260,9 +263,12 @@ class GroundStation:
         no further status (a router restarted under load: 8 of 9 key frames)."""
         now = self.clock()
         for v in self.vehicles.values():
-            if (not v.fetching and now - v.last_fetch_s > REFETCH_S
-                    and v.last_status.get("map_digest") not in (None, v.digest())):
+            if v.behind and not v.fetching and now - v.last_fetch_s > REFETCH_S:
                 self._request_fetch(v)
+
+    @staticmethod
+    def _behind(v: Vehicle) -> bool:
+        return v.last_status.get("map_digest") not in (None, v.digest())
 
     def _pose(self, v: Vehicle, m: dict[str, Any], size: int, recv_unix_s: float) -> None:
         v.bytes["pose"] += size
@@ -285,8 +291,8 @@ class GroundStation:
         v.statuses += 1
         v.last_status = m
         v.last_state = str(m.get("state", "unknown"))
-        behind = m.get("map_digest") not in (None, v.digest())
-        if behind and self.clock() - v.last_fetch_s > REFETCH_S:
+        v.behind = self._behind(v)
+        if v.behind and self.clock() - v.last_fetch_s > REFETCH_S:
             self._request_fetch(v)
 
     def summary(self) -> dict[str, Any]:
