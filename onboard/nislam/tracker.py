@@ -170,6 +170,11 @@ class NislamTracker:
             self._lost = True
             return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
 
+        if key.keyframe_id == reused_key and not reused:
+            # The first frame on a key re-used after the last pose: its step
+            # from the last position reported is the re-use's jump, judged as
+            # an in-place re-use's is (less the distance flown in between).
+            self._count_jump(outcome.p_W_m, t_g)
         peak = outcome.peak
         self._prev = Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3])
@@ -379,10 +384,8 @@ class NislamTracker:
             return
         self._next_key_id += 1
         cand, o = found
-        self._count_jump(o.p_W_m, prev.t_s)
         self._prev = Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
                            o.pose_var[:3])
-        self._last_trusted_p = o.p_W_m
         self._reused_after_pose = cand.keyframe_id
 
     def _rate_difference(
