@@ -9,8 +9,10 @@ error of rate estimates against the ground truth's (central difference of the
 ground-truth poses at the frame stamps), camera axes, rad/s: the rate the rows'
 shear measured (what landmarks are first made with), backward / central
 differences of the tracker's poses (what landmark_rate.py settles them with),
-and a quadratic fit over five poses (docs/fastorb_backend.md, "New landmarks
-settled with the poses' rate").
+and a quadratic fit over five poses; then the translation rate the shutter
+correction makes landmarks with (the motion model's) against the poses'
+central difference and zero (docs/fastorb_backend.md, "New landmarks settled
+with the poses' rate", "The frame's own rate").
 """
 
 from __future__ import annotations
@@ -47,13 +49,14 @@ def main(seq_dir: str, overrides: list[str]) -> None:
         return landmarks(*a)
 
     tr._landmarks = logged
-    T, tm, shear, ts = [], [], [], []
+    T, tm, shear, ts, rho = [], [], [], [], []
     for i, fr in enumerate(seq.frames()):
         frame["i"] = i
         r = tr.track(fr, att)
         T.append(tr._history[-1][1].copy() if r.trusted and tr._history else None)
         tm.append(tr._t_motion)
         shear.append(None if tr._rate is None else tr._rate.copy())
+        rho.append(tr._xi[3:].copy() if r.trusted else None)  # what landmarks are made with
         ts.append(fr.t_s)
         tr.backend_step()
     ts = np.array(ts)
@@ -63,10 +66,10 @@ def main(seq_dir: str, overrides: list[str]) -> None:
                                          [np.zeros((1, 3)), np.ones((1, 1))]]) for k in range(len(ts))]
     n = len(ts)
 
-    def diff(P, times, a, b):
+    def diff(P, times, a, b, part=slice(0, 3)):
         if a < 0 or b >= n or P[a] is None or P[b] is None:
             return None
-        return twist_rate(P[a], P[b], times[b] - times[a])[:3]
+        return twist_rate(P[a], P[b], times[b] - times[a])[part]
 
     def fit(k, h=2):
         xs = [j for j in range(k - h, k + h + 1) if 0 <= j < n and j != k and T[j] is not None]
@@ -89,6 +92,20 @@ def main(seq_dir: str, overrides: list[str]) -> None:
                           if e is not None])
             print(f"  {label:30s} RMS x/y/z {np.sqrt(np.mean(E**2, 0)).round(3)} mean "
                   f"{E.mean(0).round(3)} norm RMS {np.sqrt(np.mean(np.sum(E**2, 1))):.3f} rad/s")
+    # The translation rate rho (camera axes, m/s) the shutter correction uses:
+    # the motion model's (the last interval's) against the poses' central
+    # difference, both against the ground truth's (docs/fastorb_backend.md).
+    tr_ = slice(3, 6)
+    trans = {"motion model's (last interval)": lambda k: rho[k],
+             "poses, central difference": lambda k: diff(T, tm, k - 1, k + 1, tr_),
+             "zero": lambda k: np.zeros(3) if T[k] is not None else None}
+    frames = sorted(made)
+    truth = [diff(G, ts, k - 1, k + 1, tr_) for k in frames]
+    print("translation rate at frames that made landmarks: ground truth RMS "
+          f"{np.sqrt(np.mean(np.array([g for g in truth if g is not None])**2, 0)).round(3)} m/s")
+    for label, f in trans.items():
+        E = np.array([e for e in (_err(f(k), g) for k, g in zip(frames, truth)) if e is not None])
+        print(f"  {label:30s} RMS x/y/z {np.sqrt(np.mean(E**2, 0)).round(3)} m/s")
 
 
 def _err(est, truth):
