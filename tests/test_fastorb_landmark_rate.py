@@ -152,3 +152,50 @@ def test_settled_landmarks_sit_where_the_rolling_shutter_saw_them() -> None:
     rms = {k: float(np.sqrt(np.mean(v**2))) for k, v in out.items()}
     assert len(out[True]) > 200
     assert rms[True] < 0.8 * rms[False], rms
+
+
+def _seen(p_mid: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Camera points as the rows saw them (the inverse of points_at_mid):
+    p_v with p_v - tau_v (omega x p_v + rho) = p_mid, tau_v from p_v's own row."""
+    p = p_mid.copy()
+    for _ in range(20):
+        tau = READOUT * ((K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]) / H - 0.5)
+        p = p_mid + tau[:, None] * (np.cross(xi[:3], p) + xi[3:])
+    return p
+
+
+def test_a_key_frame_reposed_with_the_settled_rate_puts_its_landmarks_right() -> None:
+    """reposed_moves: the frame's pose solved again on its inliers' raw
+    pixels with the settled rate, and its new landmarks made from that pose,
+    land on the truth (the model is exact here) from a pose and a rate that
+    were both off (what the shear fit gave); `settle` alone keeps the pose's
+    error, and a re-pose with the old rate keeps both."""
+    from dataclasses import replace
+
+    from onboard.fastorb.landmark_rate import reposed_moves
+
+    rng = np.random.default_rng(6)
+    T = se3_exp(np.array([0.2, -0.3, 0.1, 0.1, 0.05, -0.2]))
+    xi = np.array([0.4, -1.0, 0.6, 0.05, -0.03, 0.02])  # the true twist per second
+
+    def frame(n):  # world points, their raw pixels and depths under T, xi
+        p_mid = np.c_[rng.uniform(-1.2, 1.2, (n, 2)), rng.uniform(1.0, 3.0, n)]
+        p_v = _seen(p_mid, xi)
+        uv = np.c_[K[0, 0] * p_v[:, 0] / p_v[:, 2] + K[0, 2], K[1, 1] * p_v[:, 1] / p_v[:, 2] + K[1, 2]]
+        return (p_mid - T[:3, 3]) @ T[:3, :3], uv, p_v[:, 2], p_mid[:, 2]
+
+    X_in, uv_in, _, z_in = frame(300)  # the disparity of the point at the middle row's instant
+    X_new, uv_new, z_new, _ = frame(200)
+    T_fit = se3_exp(np.array([0.004, -0.003, 0.002, 0.006, -0.004, 0.003])) @ T  # ~4 mm, 0.3 deg off
+    omega_fit = xi[:3] + np.array([0.3, -0.2, 0.25])
+    u = unsettled(np.arange(200), uv_new, z_new, K, omega_fit, READOUT, H, T_fit, 1.0,
+                  np.eye(4), 0.9)
+    u = replace(u, inliers=(uv_in, X_in, 120.0 / z_in, xi[3:].copy()))
+    made = _made(uv_new, z_new, omega_fit, xi[3:], T_fit)
+
+    def err(moves):
+        return np.abs(made + moves - X_new).max()
+
+    assert err(reposed_moves(u, xi[:3], K, READOUT, H, 1.0, 120.0)) < 1e-5
+    assert err(settle(u, xi[:3])) > 3e-3  # the fit's pose error stays
+    assert err(reposed_moves(u, omega_fit, K, READOUT, H, 1.0, 120.0)) > 1e-3

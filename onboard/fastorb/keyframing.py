@@ -17,12 +17,19 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
 from onboard.core.messages import KeyframeCloud, RgbdFrame
 from onboard.fastorb.features import Detector, Outcome, Tracked
-from onboard.fastorb.landmark_rate import Unsettled, central_rate, settle, unsettled
+from onboard.fastorb.landmark_rate import (
+    Unsettled,
+    central_rate,
+    reposed_moves,
+    settle,
+    unsettled,
+)
 from onboard.fastorb.local_map import (
     CloudGrid,
     Keyframe,
@@ -34,6 +41,7 @@ from onboard.fastorb.local_map import (
 from onboard.fastorb.loop import LoopClosing
 from onboard.fastorb.mapping import LocalMapping
 from onboard.fastorb.params import FastOrbParams
+from onboard.fastorb.pose import disparity
 from onboard.fastorb.shutter import points_at_mid
 
 
@@ -117,11 +125,14 @@ class KeyframeMaking:
     def _landmarks(
         self, frame: RgbdFrame, T_cw: np.ndarray, uv: np.ndarray,
         around: tuple[np.ndarray, float, float] | None = None,
+        inliers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[Tracked, np.ndarray]:
         """New landmarks (fresh ids) for those pixels `uv` that have usable
         depth, and which those were (bool (N,)). With the pose before this
         one, `around` = (T_prev, t_prev, t_now), they are settled with the
-        poses' rate once the next frame is posed (landmark_rate.py)."""
+        poses' rate once the next frame is posed (landmark_rate.py); with the
+        frame's `inliers` (raw pixels, landmarks, disparities), from its pose
+        solved again with that rate (reposed_moves)."""
         z = sample_depth(frame.depth_m, uv, self.p.min_depth_m, self.p.max_depth_m,
                          self.p.depth_edge_rel)
         ok = z > 0
@@ -133,9 +144,12 @@ class KeyframeMaking:
         xyz = (p_C - T_cw[:3, 3]) @ T_cw[:3, :3]  # R^T (p_C - t), row-wise
         if around is not None and n:
             T_prev, t_prev, t_now = around
-            self._unsettled.append(unsettled(
+            u = unsettled(
                 ids, uv[ok], z[ok], self.K, self._xi[:3], self.p.rolling_shutter_readout_s,
-                self._size[1], T_cw, t_now, T_prev, t_prev))
+                self._size[1], T_cw, t_now, T_prev, t_prev)
+            if inliers is not None:
+                u = replace(u, inliers=(*inliers, self._xi[3:].copy()))
+            self._unsettled.append(u)
         return Tracked(uv[ok].astype(np.float32), xyz, ids), ok
 
     # ------------------------------------------- landmarks settled (landmark_rate.py)
@@ -170,7 +184,10 @@ class KeyframeMaking:
             ids, moves = [], []
             for u in pending:
                 ids.append(u.ids)
-                moves.append(settle(u, central_rate(u, T_next, t_next)))
+                w = central_rate(u, T_next, t_next)
+                moves.append(settle(u, w) if u.inliers is None else reposed_moves(
+                    u, w, self.K, self.p.rolling_shutter_readout_s, self._size[1],
+                    self.p.pnp_huber_px, self.p.rgbd_bf_px))
             self._move_landmarks(np.concatenate(ids), np.concatenate(moves), outcome)
 
         self._deferred.insert(0, job)
@@ -235,7 +252,14 @@ class KeyframeMaking:
         assert feats is not None and feats.desc is not None
         tracked = outcome.tracked
         on = self._detector.pair_with(tracked.uv, feats.uv, 1.5)
-        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0], around)
+        inliers = None
+        if around is not None and self.p.rolling_shutter_repose:  # the pose's own points
+            zi = sample_depth(frame.depth_m, tracked.uv, self.p.min_depth_m,
+                              self.p.rgbd_max_depth_m, self.p.depth_edge_rel)
+            inliers = (tracked.uv.astype(np.float64), tracked.xyz_W.copy(),
+                       disparity(zi, len(zi), self.p.rgbd_bf_px))
+        fresh, has_depth = self._landmarks(frame, outcome.T_cw, feats.uv[on < 0], around,
+                                           inliers)
         kf_idx = np.concatenate([np.flatnonzero(on >= 0), np.flatnonzero(on < 0)[has_depth]])
         kf_pts = tracked.subset(on[on >= 0]).extended(fresh)
         free = self._detector.free(tracked.uv, fresh.uv)

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.fastorb.shutter import back_project, row_times, twist_rate
+from onboard.fastorb.pose import refine_pose
+from onboard.fastorb.shutter import back_project, pixels_at_mid, row_times, twist_rate
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,9 @@ class Unsettled:
     t_s: float
     T_prev: np.ndarray
     t_prev: float
+    # The frame's own inliers (raw pixels, landmarks, disparity) and its
+    # translation rate, to re-pose it with the settled rate (repose); None: not re-posed
+    inliers: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def unsettled(ids: np.ndarray, uv: np.ndarray, z: np.ndarray, K: np.ndarray, omega: np.ndarray,
@@ -69,3 +73,31 @@ def settle(u: Unsettled, omega_new: np.ndarray) -> np.ndarray:
     d = np.asarray(omega_new, np.float64) - u.omega
     move_C = -u.tau_s[:, None] * np.cross(d, u.p_C)
     return move_C @ u.T_cw[:3, :3]  # R^T m, row-wise
+
+
+def reposed_moves(u: Unsettled, omega_new: np.ndarray, K: np.ndarray, readout_s: float,
+                  height_px: int, huber_px: float, bf_px: float) -> np.ndarray:
+    """(N, 3) world moves of the landmarks `u.ids` when their frame's pose
+    is solved again on its inliers' pixels brought to the middle row with
+    `omega_new` (no rate fit; the translation rate as before), and they are
+    made from that pose with it.
+
+    Why the pose too: the shear fit (shutter.refine_with_rate) frees three
+    more parameters per frame, so the pose can follow what is left of the
+    map's own shear (the rate and the map's shear are one gauge freedom when
+    the view changes little), and a key frame hands that on to every landmark
+    it makes: drift. With the rate held at the poses' central difference the
+    pose cannot (tum_fr1_rpy, the ground-truth rate for every pose, no fit:
+    RPE lag 30 22.9 -> 19.2 mm; docs/fastorb_backend.md "A key frame
+    re-posed"). The frame's reported pose keeps the fit, which is less noisy
+    from frame to frame."""
+    uv, xyz_W, disp, rho = u.inliers
+    xi = np.concatenate([np.asarray(omega_new, np.float64)[:3], rho])
+    depth = xyz_W @ u.T_cw[2, :3] + u.T_cw[2, 3]
+    T = refine_pose(u.T_cw, xyz_W, pixels_at_mid(uv, depth, K, xi, readout_s, height_px), K,
+                    huber_px, 5, disp, bf_px)
+    p_old = u.p_C - u.tau_s[:, None] * (np.cross(u.omega, u.p_C) + rho)
+    p_new = u.p_C - u.tau_s[:, None] * (np.cross(xi[:3], u.p_C) + rho)
+    old = (p_old - u.T_cw[:3, 3]) @ u.T_cw[:3, :3]
+    new = (p_new - T[:3, 3]) @ T[:3, :3]
+    return new - old
