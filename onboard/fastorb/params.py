@@ -50,7 +50,7 @@ class FastOrbParams:
     rolling_shutter_readout_s: float = -1.0  # colour rows read out over this time, top first; 0: global; -1: the camera's (shutter.py)
     rolling_shutter_rate_sd: float = 0.5  # body rate's change per frame the shear fit allows (1 sd) [rad/s]
     rolling_shutter_settle_landmarks: bool = True  # new landmarks re-made with the poses' central-difference rate after the next pose (landmark_rate.py)
-    rolling_shutter_repose: bool = False  # ... and a key frame's from its pose solved again with that rate (no rate fit)
+    rolling_shutter_repose: bool = True  # ... and a key frame's from its pose solved again with that rate (no rate fit)
     # Landmarks from depth
     landmark_max_sd_m: float = 0.002  # no new landmarks from a pose placing them worse (1 sd, pose.landmark_sd)
     min_depth_m: float = 0.2
