@@ -16,7 +16,8 @@ poses are those of the matches done in series, bit for bit.
 
 from __future__ import annotations
 
-from concurrent.futures import Executor, Future
+import logging
+from concurrent.futures import Executor, Future, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +28,8 @@ from onboard.nislam.depth import DepthFit, depth_translation
 from onboard.nislam.keys import Key
 from onboard.nislam.params import NislamParams
 from onboard.nislam.projection import AxonometricImage, Cloud, project
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -116,5 +119,7 @@ class Speculation:
         """Wait for every match still running: before anything moves or
         overwrites a key (a new key may take a kept key's memory)."""
         started, self._started = self._started, {}
-        for _, fut in started.values():
-            fut.result()
+        wait([fut for _, fut in started.values()])
+        for key_id, (_, fut) in started.items():
+            if fut.exception() is not None:  # a match in series would have raised it
+                log.warning("a match of key %d started early failed: %s", key_id, fut.exception())
