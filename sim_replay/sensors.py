@@ -25,17 +25,57 @@ from sim_replay.attitude import AttitudeErrorModel, perturb_samples
 
 
 @dataclass(frozen=True)
+class DisparityModel:
+    """How a stereo or structured-light sensor errs: in disparity, not in depth.
+
+    Depth is z = f B / d. The matcher finds d by correlating a window of
+    `window_px` x `window_px` pixels, so the disparities of pixels closer than a
+    window err together (patches, not independent pixels), and it reports d
+    in steps of `subpixel_px` (Kinect v1: 1/8 px), so the depth comes in steps
+    of z^2 / (f B) * subpixel_px that grow with the square of the distance
+    (Khoshelham & Elberink 2012, Eq. 9; Smisek et al. 2011).
+    focal_px / baseline_m: of the matching (IR) camera, not the colour one.
+    sigma_px: disparity noise std before the rounding to steps.
+    """
+
+    focal_px: float = 580.0
+    baseline_m: float = 0.075
+    subpixel_px: float = 0.125
+    sigma_px: float = 0.075
+    window_px: int = 9
+
+    def __post_init__(self) -> None:
+        if self.focal_px <= 0 or self.baseline_m <= 0 or self.subpixel_px <= 0:
+            raise NislamError("disparity model: focal, baseline and subpixel step must be > 0")
+        if self.sigma_px < 0 or self.window_px < 1:
+            raise NislamError("disparity model: sigma >= 0, window >= 1 px")
+
+    def depth_step_m(self, z_m: float | np.ndarray) -> float | np.ndarray:
+        """Depth between two neighbouring disparity steps at depth z."""
+        return np.asarray(z_m) ** 2 * (self.subpixel_px / (self.focal_px * self.baseline_m))
+
+
+# Kinect v1 (TUM RGB-D): IR camera f ~580 px, projector-camera baseline 7.5 cm,
+# disparity in 1/8 px (11-bit raw), 9x9 correlation window. sigma_px: Nguyen et
+# al. 2012 measure sigma_z ~ 0.0019 z^2 m far out, i.e. 0.083 px of disparity
+# in all, of which the rounding to 1/8 px is 0.125 / sqrt(12) = 0.036 px.
+KINECT_V1 = DisparityModel()
+
+
+@dataclass(frozen=True)
 class DepthSensorModel:
     """A stereo / structured-light depth camera.
 
     sigma_m_per_m2: depth noise std = sigma_m_per_m2 * z^2 (disparity noise
         maps to depth as z^2 / (f B); 0.0015 is ~1.5 mm at 1 m, 2.4 cm at 4 m,
-        Kinect/RealSense class).
+        Kinect/RealSense class), drawn per 2x2 pixel block and not quantised.
     min_range_m / max_range_m: no depth outside (true depth).
     edge_rel: a pixel whose 3x3 neighbourhood spans more than edge_rel * z is on
         a depth edge and invalid (matching windows straddle the edge there);
         edge_width_px more pixels around it are invalid too.
     dropout: share of further random invalid pixels (specular, dark spots).
+    disparity: if set, the noise is that sensor's disparity error (window-
+        correlated, rounded to disparity steps) and sigma_m_per_m2 is unused.
     """
 
     sigma_m_per_m2: float = 0.0015
@@ -44,6 +84,7 @@ class DepthSensorModel:
     edge_rel: float = 0.04
     edge_width_px: int = 1
     dropout: float = 0.0
+    disparity: DisparityModel | None = None
 
     def __post_init__(self) -> None:
         if self.sigma_m_per_m2 < 0 or not 0 <= self.dropout < 1 or self.edge_width_px < 0:
@@ -55,17 +96,65 @@ class DepthSensorModel:
 PERFECT_DEPTH = DepthSensorModel(sigma_m_per_m2=0.0, min_range_m=0.0, max_range_m=1e9,
                                  edge_rel=math.inf, edge_width_px=0)
 
+# Named depth profiles (`nislam sim --depth-profile`): "gaussian" is the model
+# the flights were rendered with so far, "kinect" a Kinect v1 as in TUM RGB-D.
+DEPTH_PROFILES: dict[str, DepthSensorModel] = {
+    "gaussian": DepthSensorModel(),
+    "kinect": DepthSensorModel(disparity=KINECT_V1),
+}
+
+
+def depth_profile(name: str) -> DepthSensorModel:
+    try:
+        return DEPTH_PROFILES[name]
+    except KeyError:
+        raise NislamError(
+            f"unknown depth profile {name!r} (known: {', '.join(DEPTH_PROFILES)})"
+        ) from None
+
+
+def _block_normals(shape_hw: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """Standard normals drawn per 2x2 pixel block, at full resolution."""
+    h, w = shape_hw
+    blocks = rng.standard_normal(((h + 1) // 2, (w + 1) // 2), dtype=np.float32)
+    return cv2.resize(blocks, (2 * blocks.shape[1], 2 * blocks.shape[0]),
+                      interpolation=cv2.INTER_NEAREST)[:h, :w]
+
+
+def _window_gain(window_px: int) -> float:
+    """Std of a window_px-wide box mean of 2x2-block normals (averaged over the
+    window's two phases against the blocks, per axis)."""
+    v = [np.sum((np.bincount((np.arange(window_px) + p) // 2) / window_px) ** 2) for p in (0, 1)]
+    return float(np.mean(v))  # sqrt of the 2-D variance, the product of two equal 1-D ones
+
+
+def _disparity_depth(z: np.ndarray, disp: DisparityModel, rng: np.random.Generator
+                     ) -> np.ndarray:
+    """Depth through a disparity matcher: noise correlated over the matching
+    window (the box mean of the same per-block draws), then rounded to whole
+    disparity steps; 0 where the disparity rounds to 0 or below."""
+    fb = np.float32(disp.focal_px * disp.baseline_m)
+    step = np.float32(disp.subpixel_px)
+    d = np.where(z > 0, fb / np.maximum(z, np.float32(1e-6)), np.float32(0))
+    if disp.sigma_px > 0:
+        k = disp.window_px
+        noise = cv2.blur(_block_normals(z.shape, rng), (k, k), borderType=cv2.BORDER_REFLECT)
+        d += noise * np.float32(disp.sigma_px / _window_gain(k))
+    dq = np.rint(d / step) * step
+    return np.where(dq > 0, fb / np.maximum(dq, step), np.float32(0)).astype(np.float32)
+
 
 def measure_depth(depth_m: np.ndarray, model: DepthSensorModel, rng: np.random.Generator
                   ) -> np.ndarray:
     """The sensor's depth (float32, 0 = invalid) for true depth `depth_m`.
 
-    The noise is drawn per 2x2 pixel block: a stereo matcher's window makes
-    neighbouring disparities err together, and a quarter of the draws keeps
-    the sensor model at a few milliseconds a frame.
+    Gaussian model: the noise is drawn per 2x2 pixel block (a quarter of the
+    draws keeps the sensor model at a few milliseconds a frame). Disparity
+    model: the same draws, averaged over the matching window and rounded to
+    disparity steps (`_disparity_depth`); both consume the generator alike, so
+    a flight's colour noise does not depend on the depth profile.
     """
     z = depth_m.astype(np.float32, copy=False)
-    h, w = z.shape
     valid = (z > model.min_range_m) & (z < model.max_range_m)
     if math.isfinite(model.edge_rel):
         kernel = np.ones((3, 3), np.uint8)
@@ -77,12 +166,13 @@ def measure_depth(depth_m: np.ndarray, model: DepthSensorModel, rng: np.random.G
         valid &= edge == 0
     if model.dropout > 0:
         valid &= rng.random(z.shape, dtype=np.float32) >= model.dropout
-    out = z.copy()
-    if model.sigma_m_per_m2 > 0:
-        blocks = rng.standard_normal(((h + 1) // 2, (w + 1) // 2), dtype=np.float32)
-        noise = cv2.resize(blocks, (2 * blocks.shape[1], 2 * blocks.shape[0]),
-                           interpolation=cv2.INTER_NEAREST)[:h, :w]
-        out += noise * (np.float32(model.sigma_m_per_m2) * z * z)
+    if model.disparity is not None:
+        out = _disparity_depth(z, model.disparity, rng)
+    else:
+        out = z.copy()
+        if model.sigma_m_per_m2 > 0:
+            noise = _block_normals(z.shape, rng)
+            out += noise * (np.float32(model.sigma_m_per_m2) * z * z)
     out *= valid
     np.maximum(out, 0.0, out=out)  # a noisy depth below zero is no depth
     return out

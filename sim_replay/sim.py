@@ -50,6 +50,7 @@ from sim_replay.sensors import (
     DepthSensorModel,
     ahrs_profile,
     ahrs_sample_times,
+    depth_profile,
     depth_to_png_units,
     measure_attitude,
     measure_depth,
@@ -124,9 +125,13 @@ def sim_options(
     attitude_offset_ms: float | None = None,
     attitude_dropout: float | None = None,
     texel_m: float = 0.003,
+    depth_profile_name: str | None = None,
 ) -> SimOptions:
     """SimOptions from command-line values: a named AHRS profile sets the four
-    error terms together, explicit values override it, the rest is zero."""
+    error terms together, explicit values override it, the rest is zero; a
+    named depth profile (sensors.DEPTH_PROFILES) picks the depth sensor."""
+    if ideal_camera and depth_profile_name:
+        raise NislamError("--ideal-camera has exact depth: leave out --depth-profile")
     prof = ahrs_profile(ahrs_profile_name) if ahrs_profile_name else {}
 
     def pick(value: float | None, key: str) -> float:
@@ -142,6 +147,8 @@ def sim_options(
     camera: dict[str, Any] = {}
     if ideal_camera:
         camera = {"depth": PERFECT_DEPTH, "pixel_noise_dn": 0.0}
+    elif depth_profile_name:
+        camera = {"depth": depth_profile(depth_profile_name)}
     return SimOptions(seconds=seconds, seed=seed, camera_hz=camera_hz, width=width,
                       height=height, mount=mount, ahrs=ahrs, texel_m=texel_m, **camera)
 

@@ -77,6 +77,9 @@ def _add_sim_parsers(sub: Any, verbose: argparse.ArgumentParser) -> None:
     sp.add_argument("--ahrs-hz", type=float, default=100.0, metavar="X", help="default 100")
     sp.add_argument("--ahrs-profile", metavar="NAME",
                     help="AHRS error profile: perfect, myahrs, autopilot (sets the four below)")
+    sp.add_argument("--depth-profile", metavar="NAME",
+                    help="depth sensor: gaussian (default), kinect (disparity steps, "
+                         "window-correlated noise)")
     attitude_error_args(sp)
     sp.add_argument("--attitude-dropout", type=float, metavar="P",
                     help="share of attitude samples lost, [0, 1) (default 0)")
@@ -103,6 +106,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         ahrs_profile_name=args.ahrs_profile, attitude_noise_deg=args.attitude_noise_deg,
         attitude_bias_deg_per_sqrt_s=args.attitude_bias_deg_per_sqrt_s,
         attitude_offset_ms=args.attitude_offset_ms, attitude_dropout=args.attitude_dropout,
+        depth_profile_name=args.depth_profile,
     )
     out_dir = args.out or Path("results") / f"sim_{args.scenario}"
     result = simulate(args.scenario, out_dir, opts, faults=args.faults, progress=not args.quiet)
