@@ -190,7 +190,6 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.kernel_sigma": POSITIVE,
     "nislam.lam": POSITIVE,  # ridge term of Eq. 12: 0 divides by the kernel spectrum alone
     "nislam.label_sigma_cells": NON_NEGATIVE,  # 0 = the paper's delta label
-    "nislam.speculate_psr_ratio": NON_NEGATIVE,  # 0 = never
     "nislam.rate_half_window_s": POSITIVE,
     "nislam.attitude_sd_deg": NON_NEGATIVE,
     "nislam.search_radius_m": NON_NEGATIVE,

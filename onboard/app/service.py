@@ -23,13 +23,11 @@ last key frame goes to the map, the outputs flush, devices close.
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -101,7 +99,7 @@ class Service:
         notifier: Notifier | None = None,
         emit: Emit | None = None,
         out_dir: Path | None = None,
-        tracker_factory: TrackerFactory | None = None,
+        tracker_factory: TrackerFactory = make_tracker,
         realtime: bool = False,
     ) -> None:
         """`realtime`: raise the process to `[service] realtime_priority` once
@@ -114,12 +112,7 @@ class Service:
         self.notifier = notifier or Notifier(env={})
         self.emit = emit or (lambda line: log.info("%s", line))
         self.out_dir = out_dir
-        # A worker on the core the loop leaves to drivers and outputs: NI-SLAM
-        # starts a kept key's match there when its frame's may weaken, which
-        # halves the slowest 1 % of frames (onboard/nislam/speculate.py).
-        self._spare = ThreadPoolExecutor(1, thread_name_prefix="spare-core") \
-            if tracker_factory is None and cfg.nislam.speculate_psr_ratio > 0 else None
-        self.tracker_factory = tracker_factory or functools.partial(make_tracker, spare=self._spare)
+        self.tracker_factory = tracker_factory
         self.realtime = realtime
         self.stats = LoopStats()
         # Trusted poses are kept only to be scored or written: a service on
@@ -198,8 +191,6 @@ class Service:
             finally:
                 stop_times = self.sources.stop()
                 self.notifier.close()
-                if self._spare is not None:
-                    self._spare.shutdown()
         return self._result(time.monotonic() - t_loop, stop_times)
 
     def _loop(self, outputs: Output, t_start: float) -> None:

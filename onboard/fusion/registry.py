@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from concurrent.futures import Executor
 from typing import Protocol
 
 from onboard import NislamError
@@ -39,8 +38,7 @@ class TrackerSections(Protocol):
     def fastorb(self) -> FastOrbParams: ...
 
 
-def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections,
-                 spare: Executor | None = None) -> Tracker:
+def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     from onboard.nislam.tracker import NislamTracker
 
     # Noise a replay adds to the attitude (`--attitude-noise-deg`, [attitude]
@@ -49,26 +47,24 @@ def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections,
     added = getattr(getattr(cfg, "attitude", None), "noise_deg", 0.0)
     if added > 0.0:
         params = dataclasses.replace(params, attitude_sd_deg=math.hypot(params.attitude_sd_deg, added))
-    return NislamTracker(intrinsics, params, spare)
+    return NislamTracker(intrinsics, params)
 
 
-def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections,
-                  spare: Executor | None = None) -> Tracker:
+def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     from onboard.fastorb.tracker import FastOrbTracker
 
     return FastOrbTracker(intrinsics, cfg.fastorb)
 
 
-def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections,
-                spare: Executor | None = None) -> Tracker:
+def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     from onboard.fusion.fused import FusedTracker
 
     # NI-SLAM first: its key-frame clouds make the map (onboard.fusion.fused).
     params = getattr(cfg, "fusion", None) or FusionParams()
-    return FusedTracker([_make_nislam(intrinsics, cfg, spare), _make_fastorb(intrinsics, cfg)], params)
+    return FusedTracker([_make_nislam(intrinsics, cfg), _make_fastorb(intrinsics, cfg)], params)
 
 
-_REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections, Executor | None], Tracker]] = {
+_REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
     "nislam": _make_nislam,
     "fastorb": _make_fastorb,
     "fused": _make_fused,
@@ -76,15 +72,12 @@ _REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections, Executor | Non
 TRACKER_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 
 
-def make_tracker(name: str, intrinsics: CameraIntrinsics, cfg: TrackerSections,
-                 spare: Executor | None = None) -> Tracker:
-    """A fresh tracker `name` for a camera with `intrinsics`, parameters from
-    `cfg`; `spare`: a worker on a spare core it may use to cut a frame's
-    latency (the onboard loop gives one; replay and bench do not)."""
+def make_tracker(name: str, intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+    """A fresh tracker `name` for a camera with `intrinsics`, parameters from `cfg`."""
     try:
         build = _REGISTRY[name]
     except KeyError:
         raise NislamError(
             f"unknown tracker '{name}' (known: {', '.join(TRACKER_NAMES)})"
         ) from None
-    return build(intrinsics, cfg, spare)
+    return build(intrinsics, cfg)

@@ -146,13 +146,3 @@ def body_rate(attitude: AttitudeSource, t_s: float, half_s: float) -> np.ndarray
     if r0 is None or r1 is None:
         return None
     return so3_log(r0.T @ r1) / (2.0 * half_s)
-
-
-def rate_difference(attitude: AttitudeSource, t_key_s: float, t_cur_s: float, r_rel: np.ndarray,
-                    half_s: float) -> np.ndarray | None:
-    """g = omega_key - R_rel omega_cur in key axes (rad/s), see OffsetCalibration."""
-    w_cur = body_rate(attitude, t_cur_s, half_s)
-    w_key = body_rate(attitude, t_key_s, half_s)
-    if w_cur is None or w_key is None:
-        return None
-    return w_key - r_rel @ w_cur

@@ -41,9 +41,6 @@ class NislamParams:
     reuse_max_angle_deg: float = 25.0  # a kept key is tried when its optical axis is this close ...
     reuse_max_dist_m: float = 0.5  # ... and its position this close to the frame's
     reuse_candidates: int = 2  # kept keys tried per weakening match, the most alike in view first
-    # ... started on a spare core (if the service gives one) when the last PSR on the key
-    # was below this many T_r: the PSR falls gradually as the view leaves a key (speculate.py)
-    speculate_psr_ratio: float = 1.2
     # Every n-th firm match is also measured against the kept key most alike
     # in view, after the pose went out, and the key positions solved again
     # (KeyframeMap.link): the keys agree before one is re-used; 0 = only at re-uses.

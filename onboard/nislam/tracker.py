@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from concurrent.futures import Executor
 
 import numpy as np
 
@@ -31,9 +30,10 @@ from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
 from onboard.nislam import kernels as kern
 from onboard.nislam.attitude_var import attitude_lateral_var_m2, with_attitude_var
-from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate, rate_difference
-from onboard.nislam.correlation import KernelCorrelationFilter, Peak, whiten
+from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate
+from onboard.nislam.correlation import KernelCorrelationFilter, Peak, find_peak, whiten
 from onboard.nislam.deferred import Deferred
+from onboard.nislam.depth import depth_translation
 from onboard.nislam.keymap import KeyframeMap, Measured
 from onboard.nislam.keys import Key, KeyStore
 from onboard.nislam.matched import Match, Prev, pose_from_match
@@ -47,7 +47,6 @@ from onboard.nislam.projection import (
 )
 from onboard.nislam.results import lost_result, quality_from_psr, restart_result
 from onboard.nislam.shutter import rolling_shutter_cloud
-from onboard.nislam.speculate import Speculation, measure, search_window
 
 log = logging.getLogger(__name__)
 
@@ -57,10 +56,7 @@ class NislamTracker:
 
     name = "nislam"
 
-    def __init__(self, intrinsics: CameraIntrinsics, params: NislamParams = NislamParams(),
-                 spare: Executor | None = None):
-        """`spare`: a worker on a spare core for the kept keys' matches when a
-        frame's match may weaken (speculate.py); None: every match in series."""
+    def __init__(self, intrinsics: CameraIntrinsics, params: NislamParams = NislamParams()):
         self.intr = intrinsics
         self.p = params
         self.shape = (params.grid_height, params.grid_width)
@@ -81,8 +77,6 @@ class NislamTracker:
         )
         self._deferred = Deferred()  # steps 5 and 6, for after the pose (deferred.py)
         self._reused_after_pose: int | None = None  # the kept key re-used after the last pose
-        self._spec = Speculation(spare) if spare is not None else None
-        self._last_psr: tuple[int, float] | None = None  # (key id, PSR) of the last pose
         # A cell's depth: the mean of its front surface's points (kernels.zbuffer_project)
         self._front = (params.depth_front_mean_m, 3.0 * params.depth_sigma_rel
                        if params.depth_front_mean_m > 0 else 0.0)
@@ -104,8 +98,6 @@ class NislamTracker:
         refinement, Eq. 19; the new key's projection, filter and map entry,
         Eq. 17): called after the pose went out. The same operations in the
         same order as if done inside track(), so the poses are identical."""
-        if self._spec is not None:
-            self._spec.settle()  # nothing below may change a key a match still reads
         while self._deferred:  # a re-use's matches queue the re-used key's refinement
             self._deferred.run()
 
@@ -156,7 +148,6 @@ class NislamTracker:
         t_att = t_g + offset_s
         key = self._key
         finished: list[KeyframeCloud] = []
-        self._speculate(key, cloud, t_g, r_g, attitude)
         outcome = self._match(key, cloud, t_g, r_g, attitude, t_att)
         reused = False
         if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
@@ -188,7 +179,6 @@ class NislamTracker:
         self._prev = Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3])
         self._last_trusted_p = outcome.p_W_m
-        self._last_psr = (key.keyframe_id, peak.psr)
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
         leaving = not new_key and key.leaving_grid(self.p.min_valid_fraction)
         key_id = self._key.keyframe_id
@@ -280,15 +270,25 @@ class NislamTracker:
         r_key = attitude.rotation_at(key.t_s + self._offset_s())
         self._deferred.run(key)  # its refinement by an earlier match
         r_key = key.R_W_C if r_key is None else r_key
-        win = search_window(key, t_s, r_key.T @ r_cur, self.p)  # R_key^-1 R_cur (ref. §2)
-        raw = self._spec.take(key, win) if self._spec is not None and not link else None
-        if raw is None:
-            raw = measure(key, cloud, win, self.shape, self._front, self.p)
-        img, peak, depth = raw.img, raw.peak, raw.depth
-        if peak is None or depth is None:
+        r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
+        img = project(cloud, r_rel, self.shape, key.img.res_m, front=self._front)
+        covered = float(img.mask.mean())
+        if covered < self.p.min_valid_fraction:
+            return None
+        # The search window grows with the time since the last match, so a
+        # stalled loop or dropped frames widen it instead of losing the key.
+        radius_m = max(self.p.search_radius_m, self.p.search_speed_m_s * key.since_last_match_s(t_s))
+        peak = find_peak(
+            key.filt.response(whiten(img.gray, img.mask)), self.p.psr_exclude_cells, key.predicted_shift(t_s),
+            max(3, int(radius_m / key.img.res_m)), self.p.peak_lobe_centroid,
+        )
+        if not peak.psr >= self.p.psr_lost:  # also catches NaN
             return None
         du, dv = int(round(peak.du_cells)), int(round(peak.dv_cells))
-        r_rel = win.r_rel
+        depth = depth_translation(key, img, du, dv, self.p,
+                                  (peak.du_cells - du, peak.dv_cells - dv))
+        if depth is None:
+            return None
         if link:
             return pose_from_match(key, peak, depth, np.zeros(3))
         self._frame_count += 1
@@ -302,8 +302,7 @@ class NislamTracker:
             # hover, a steady turn) it says nothing about time. The pose does
             # not use it either (it moves the offset for the next lookups):
             # queued before the refinement, which changes the key layers it reads.
-            g = rate_difference(attitude, key.t_s + self._offset_s(), t_att, r_rel,
-                                self.p.rate_half_window_s)
+            g = self._rate_difference(key, r_rel, attitude, t_att)
             if g is not None and self._calib.informative(g[:2]):
                 self._deferred.add(self._calib, lambda: self._fit_residual(
                     key, img, peak, depth.tz_m, g, theta_img))
@@ -311,22 +310,8 @@ class NislamTracker:
             frac = (peak.du_cells - du, peak.dv_cells - dv)
             self._deferred.add(key, lambda: self._refine(key, img, du, dv, depth.tz_m, frac))
         key.shifts = [*key.shifts[-1:], (t_s, peak.du_cells, peak.dv_cells)]
-        key.coverage = [*key.coverage[-1:], raw.covered]
+        key.coverage = [*key.coverage[-1:], covered]
         return pose_from_match(key, peak, depth, theta_img)
-
-    def _speculate(self, key: Key, cloud: Cloud, t_s: float, r_cur: np.ndarray,
-                   attitude: AttitudeSource) -> None:
-        """The kept keys' matches `_reuse` would make, started on the spare
-        core when the last pose's PSR on this key was near T_r (speculate.py)."""
-        last = self._last_psr
-        if self._spec is None or self._prev is None or last is None or last[0] != key.keyframe_id \
-                or last[1] >= self.p.speculate_psr_ratio * self.p.psr_keyframe:
-            return
-        cands = self._map.candidates(r_cur, self._prev.p_W_m, key.keyframe_id,
-                                     self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
-                                     self.p.reuse_candidates)
-        self._spec.start(cands, cloud, t_s, r_cur, attitude, self._offset_s(), self.shape,
-                         self._front, self.p)
 
     def _fit_residual(self, key: Key, img: AxonometricImage, peak: Peak, tz_m: float,
                       g: np.ndarray, theta_out: np.ndarray) -> None:
@@ -342,7 +327,7 @@ class NislamTracker:
         """The frame, firmly matched against `key`, matched against the kept
         key most alike in view too (KeyframeMap.link): after the pose went out."""
 
-        def match_other(other: Key) -> Measured | None:
+        def measure(other: Key) -> Measured | None:
             kept, other.shifts = other.shifts, []  # its prior is stale: search it all
             o = self._match(other, cloud, t_s, r_cur, attitude, t_att, link=True)
             other.shifts = kept
@@ -350,7 +335,7 @@ class NislamTracker:
 
         self._map.link(key, Measured(outcome.p_W_m, outcome.pose_var[:3], outcome.peak.psr),
                        r_cur, self.p.reuse_max_angle_deg, self.p.reuse_max_dist_m,
-                       self.p.psr_keyframe, match_other)
+                       self.p.psr_keyframe, measure)
 
     def _reuse(
         self, key: Key, outcome: Match | None, cloud: Cloud, t_s: float, r_cur: np.ndarray,
@@ -373,8 +358,6 @@ class NislamTracker:
             if o is not None and o.peak.psr >= self.p.psr_keyframe:
                 if best is None or o.peak.psr > best[1].peak.psr:
                     best = (cand, o)
-        if self._spec is not None:
-            self._spec.settle()  # before the map moves keys or a new key takes memory
         if best is None:
             return None
         cand, o = best
@@ -404,6 +387,16 @@ class NislamTracker:
         self._prev = Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
                            o.pose_var[:3])
         self._reused_after_pose = cand.keyframe_id
+
+    def _rate_difference(
+        self, key: Key, r_rel: np.ndarray, attitude: AttitudeSource, t_att: float
+    ) -> np.ndarray | None:
+        """g = omega_key - R_rel omega_cur in key axes (rad/s), see OffsetCalibration."""
+        w_cur = body_rate(attitude, t_att, self.p.rate_half_window_s)
+        w_key = body_rate(attitude, key.t_s + self._offset_s(), self.p.rate_half_window_s)
+        if w_cur is None or w_key is None:
+            return None
+        return w_key - r_rel @ w_cur
 
     def _refine(self, key: Key, img: AxonometricImage, du: int, dv: int, tz: float,
                 frac: tuple[float, float] = (0.0, 0.0)) -> None:
