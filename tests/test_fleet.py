@@ -119,7 +119,11 @@ def test_router_killed_and_restarted_mid_flight(flight: Path, tmp_path: Path) ->
         for vid, v in vehicles.items():
             assert v.proc.wait(WAIT_S) == 0, f"{vid}: {v.stderr[-2000:]}"
             assert v.stop() == 0
-        assert ground.stop() == 0, ground.stderr[-2000:]
+        # At nice 19 beside other jobs the ground station's exit (maps settled,
+        # PLYs and the matplotlib plot written: ~3 s of CPU) took over 20 s of
+        # wall time once (py-spy: in savefig when SIGKILLed): it is given as
+        # long as the vehicles; its exit status is what is checked.
+        assert ground.stop(timeout=WAIT_S) == 0, ground.stderr[-2000:]
     finally:
         for p in procs:
             p.stop()
