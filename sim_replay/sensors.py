@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -17,6 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
 from sim_replay.attitude import AttitudeErrorModel, perturb_samples
+
+T = TypeVar("T")
 
 # --------------------------------------------------------------------------- mounts
 
@@ -104,13 +107,16 @@ DEPTH_PROFILES: dict[str, DepthSensorModel] = {
 }
 
 
-def depth_profile(name: str) -> DepthSensorModel:
+def _named(table: dict[str, T], kind: str, name: str) -> T:
+    """The entry `name` of a table of named profiles; one line naming the known ones if absent."""
     try:
-        return DEPTH_PROFILES[name]
+        return table[name]
     except KeyError:
-        raise NislamError(
-            f"unknown depth profile {name!r} (known: {', '.join(DEPTH_PROFILES)})"
-        ) from None
+        raise NislamError(f"unknown {kind} {name!r} (known: {', '.join(table)})") from None
+
+
+def depth_profile(name: str) -> DepthSensorModel:
+    return _named(DEPTH_PROFILES, "depth profile", name)
 
 
 def _block_normals(shape_hw: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
@@ -256,12 +262,7 @@ AHRS_PROFILES: dict[str, dict[str, float]] = {
 
 
 def ahrs_profile(name: str) -> dict[str, float]:
-    try:
-        return dict(AHRS_PROFILES[name])
-    except KeyError:
-        raise NislamError(
-            f"unknown AHRS profile {name!r} (known: {', '.join(AHRS_PROFILES)})"
-        ) from None
+    return dict(_named(AHRS_PROFILES, "AHRS profile", name))
 
 
 AHRS_MARGIN_S = 0.15  # attitude before the first / after the last frame: a replay
