@@ -6,7 +6,8 @@ through the same interfaces as the hardware drivers.
   the MAVLink feed stamps on the host's clock).
 - `ReplayCamera` is a `onboard.core.sources.CameraSource`: it publishes each frame
   into a newest-frame slot FRAME_DELIVERY_S after the replay clock reaches
-  its stamp (decoding it before), and closes the slot after the last one.
+  its stamp (decoding it before, once the loop took the last one), and
+  closes the slot after the last one.
 - `ReplayAttitude` pushes `AttitudeSample`s (R_W_B) into a sink when the
   clock reaches their stamps: `attitude.txt` (AHRS body in W) when the
   sequence has one, else ground truth (the camera's own orientation, mount
@@ -57,6 +58,10 @@ TAIL_S = 0.2  # ... and this long after the last one
 # the slower one is in) may be quicker or slower: not measured on our device
 # yet; replace it with `nislam run`'s `source` stage on one (docs/latency.md).
 FRAME_DELIVERY_S = 0.033
+# The longest the camera thread waits for the loop to take a frame before it
+# decodes the next (a loop still busy with the last frame): a third of a
+# 30 Hz frame period, leaving the decoding (~15 ms here) the rest.
+HANDOVER_WAIT_S = 0.010
 
 
 class ReplayClock:
@@ -161,12 +166,14 @@ class ReplayCamera(DriverThread):
 
     def __init__(self, seq: Sequence, clock: ReplayClock, camera: CameraModel | None = None,
                  delivery_s: float = FRAME_DELIVERY_S,
-                 schedule: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 schedule: tuple[np.ndarray, np.ndarray] | None = None,
+                 handover_wait_s: float = HANDOVER_WAIT_S) -> None:
         super().__init__(f"replay_camera:{seq.path.name}")
         self.seq = seq
         self.schedule = schedule or (np.arange(len(seq)), seq.frame_times_s)
         self.clock = clock
         self.delivery_s = delivery_s
+        self.handover_wait_s = handover_wait_s
         self.camera = camera or seq.camera  # as frames are delivered (see delivered_camera)
         self.slot = FrameSlot()
         self.published = 0
@@ -213,8 +220,14 @@ class ReplayCamera(DriverThread):
                     frame = played_frame(frame, float(t_play), pass_direction(index, k))
                 if not self.clock.wait_until(frame.t_s + self.delivery_s, self._stop):
                     return
-                self.slot.put(frame)
+                seq = self.slot.put(frame)
                 self.published += 1
+                # A camera's driver thread sleeps once it has handed a frame
+                # over (the OAK's waits on its device queue). Decoding the next
+                # one at once kept this core busy as the loop woke, so the loop
+                # woke on the other, idle one: on the 2-core VM 24-44 of 900
+                # frames reached it 2-10 ms late (docs/latency.md, "Priority").
+                self.slot.wait_taken(seq, self.handover_wait_s)
         finally:
             self.slot.close()
 

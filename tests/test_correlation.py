@@ -94,9 +94,10 @@ def test_integer_circular_shift_recovered_exactly(label_sigma, du, dv):
     peak = find_peak(f.response(x), exclude_half_cells=5)
     # The response of a circularly shifted copy is the training response rolled
     # by (dv, du), and that response is symmetric about 0: the parabola adds
-    # nothing, so the shift is exact up to round-off.
-    assert abs(peak.du_cells - du) < 1e-6
-    assert abs(peak.dv_cells - dv) < 1e-6
+    # nothing, so the shift is exact up to round-off (the filter computes in
+    # float32, as the tracker's grids are: measured up to 3e-6 cells).
+    assert abs(peak.du_cells - du) < 1e-5
+    assert abs(peak.dv_cells - dv) < 1e-5
 
 
 def test_response_matches_independent_full_spectrum_implementation():
@@ -108,8 +109,8 @@ def test_response_matches_independent_full_spectrum_implementation():
     for label_sigma in (0.0, 1.0):
         got = _trained(z, label_sigma).response(x)
         want = _reference_response(z, x, SIGMA, LAM, label_sigma, norm="true")
-        # atol: the Gaussian label is built in float32 (3e-8 measured); peak ~0.85.
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+        # atol: the filter computes in float32 (3.4e-6 measured); peak ~0.85.
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
         half = _reference_response(z, x, SIGMA, LAM, label_sigma, norm="half")
         assert np.max(np.abs(half - want)) > 1e-3
 
@@ -257,7 +258,7 @@ def test_training_into_given_spectra_matches_and_overwrites_them() -> None:
     z1 = _smooth_image(1).astype(np.float32)
     z2 = _smooth_image(2).astype(np.float32)
     x = _smooth_image(3).astype(np.float32)
-    spectra = tuple(np.full((H, W // 2 + 1), np.nan, np.complex64) for _ in range(2))
+    spectra = tuple(np.full((H, W), np.nan, np.float32) for _ in range(2))
     own = KernelCorrelationFilter((H, W), SIGMA, LAM, 1.0, spectra)
     own.train(z1)
     assert np.array_equal(own.response(x), _trained(z1, 1.0).response(x))

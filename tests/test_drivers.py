@@ -230,6 +230,25 @@ def test_slot_take_waits_for_a_frame_and_wakes_on_close() -> None:
     assert not th.is_alive() and got[1] is None and slot.closed
 
 
+def test_slot_wait_taken_returns_once_the_frame_or_a_newer_one_was_taken() -> None:
+    slot = FrameSlot()
+    seq = slot.put(frame(1.0))
+    assert slot.wait_taken(seq, 0.0) is False  # not taken yet
+    waited: list[bool] = []
+    th = threading.Thread(target=lambda: waited.append(slot.wait_taken(seq, 30.0)))
+    th.start()
+    slot.put(frame(2.0))  # frame 1 dropped: taking frame 2 takes it past seq
+    assert slot.take(0, 0.0)[0] == 2
+    th.join(30)
+    assert waited == [True]
+    seq = slot.put(frame(3.0))
+    th = threading.Thread(target=lambda: waited.append(slot.wait_taken(seq, 30.0)))
+    th.start()
+    slot.close()  # a closed slot releases the source too
+    th.join(30)
+    assert waited == [True, True] and not th.is_alive()
+
+
 # --------------------------------------------------------------------------- threads
 
 

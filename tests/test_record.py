@@ -186,6 +186,50 @@ def test_replay_camera_skips_frames_already_stale_and_counts_them(tmp_path: Path
     assert len(seen) + cam.slot.stats.dropped == cam.published
 
 
+def test_replay_camera_decodes_the_next_frame_once_the_loop_took_the_last(tmp_path: Path) -> None:
+    """Like the OAK's driver thread, which sleeps on its device queue after a
+    hand-over, the replay camera leaves its core to the loop that wakes for
+    the frame: it decodes the next frame only once the frame was taken (or
+    its `handover_wait_s` ran out)."""
+    seq_dir = make_sequence(tmp_path / "seq", n_frames=4)
+    rp = open_replay(seq_dir)
+    cam = rp.camera
+    cam.handover_wait_s = WAIT_S
+    read = rp.seq.read_frame
+    taken_at_read: list[tuple[int, int]] = []
+    second_read = threading.Event()
+
+    def read_frame(i: int):
+        taken_at_read.append((cam.slot.stats.put, cam.slot.stats.taken))
+        if i == 1:
+            second_read.set()
+        return read(i)
+
+    rp.seq.read_frame = read_frame
+    put = cam.slot.put
+    first_put = threading.Event()
+
+    def put_and_tell(frame):
+        seq = put(frame)
+        first_put.set()
+        return seq
+
+    cam.slot.put = put_and_tell
+    rp.start()
+    try:
+        assert first_put.wait(WAIT_S)
+        # Frame 0 is in the slot, not taken: the next is not decoded meanwhile.
+        assert not second_read.wait(0.5)
+        seq = 0
+        while (got := cam.take(seq, WAIT_S)) is not None:
+            seq = got[0]
+    finally:
+        assert rp.stop(10)
+    # Held 0.5 s on frame 0, the camera skipped what went stale meanwhile.
+    assert cam.published + cam.late == 4 and len(taken_at_read) == cam.published >= 2
+    assert all(put == taken for put, taken in taken_at_read)  # each read after the take
+
+
 def test_replay_drivers_play_at_the_recording_pace(tmp_path: Path) -> None:
     seq_dir = make_sequence(tmp_path / "seq", n_frames=15)
     rp = open_replay(seq_dir)

@@ -22,9 +22,24 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+# How long a thread may keep the GIL while another waits for it. CPython's
+# default is 5 ms: each time the loop comes back from a call that released the
+# GIL (an FFT, a numba kernel, a wait for the frame) while a driver or output
+# thread runs Python (pymavlink's parser, the AHRS reader, the status's JSON,
+# the replay's decoder), it may wait that long. On the 30 s `circle` at 5 ms
+# the tracker's wall-time p99 was 18.5-26.0 ms against a CPU-time p99 of
+# 12.8-16.0 ms; at 0.5 ms, 16.0-18.3 ms (docs/latency.md, "Priority").
+GIL_SWITCH_INTERVAL_S = 0.0005
+
+
+def hand_gil_over_promptly() -> None:
+    """The process's GIL switch interval to GIL_SWITCH_INTERVAL_S."""
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
 
 def _thread_ids() -> list[int]:

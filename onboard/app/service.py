@@ -58,7 +58,7 @@ from onboard.app.replay import (
 )
 from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.run_files import FileWrites, LiveTrajectory
-from onboard.app.priority import raise_to_realtime
+from onboard.app.priority import hand_gil_over_promptly, raise_to_realtime
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
 from onboard.core.camera import CameraIntrinsics
@@ -144,6 +144,7 @@ class Service:
     def run(self) -> RunResult:
         pin_one_core()
         keep_freed_memory()  # no page faults per frame (onboard/app/allocator.py)
+        hand_gil_over_promptly()  # the loop waits < 1 ms for the GIL (onboard/app/priority.py)
         t_start = time.monotonic()
         outputs = make_outputs(self.cfg.mavlink, self.cfg.zenoh, mavlink_link=self.sources.link,
                                host_time_s=self.sources.host_time_s)

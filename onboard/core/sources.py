@@ -200,7 +200,14 @@ class FrameSlot:
                 self._taken_seq = self._seq
                 s = self._stats
                 self._stats = SlotStats(s.put, s.taken + 1, s.dropped)
+                self._cond.notify_all()  # a source in wait_taken
             return self._seq, self._frame
+
+    def wait_taken(self, seq: int, timeout_s: float) -> bool:
+        """Wait up to `timeout_s` until frame `seq` (or a newer one) was taken
+        or the slot closed; True if it was."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._taken_seq >= seq or self._closed, timeout_s)
 
     @property
     def stats(self) -> SlotStats:

@@ -26,7 +26,7 @@ class KeySlot:
     gray_ref: np.ndarray
     depth_ref: np.ndarray
     count: np.ndarray
-    spectra: tuple[np.ndarray, np.ndarray]  # conj(z_hat), alpha_hat
+    spectra: tuple[np.ndarray, np.ndarray]  # z_hat, alpha_hat (CCS-packed, onboard.nislam.correlation)
 
     @classmethod
     def allocate(cls, shape: tuple[int, int]) -> "KeySlot":
@@ -39,11 +39,8 @@ class KeySlot:
         def grid() -> np.ndarray:
             return resident(np.empty(shape, np.float32))
 
-        def spectrum() -> np.ndarray:
-            return resident(np.empty((h, w // 2 + 1), np.complex64))
-
         return cls(grid(), grid(), grid(), resident(np.empty((h, w, 3), np.uint8)), grid(),
-                   grid(), grid(), (spectrum(), spectrum()))
+                   grid(), grid(), (grid(), grid()))
 
     def hold(self, img: AxonometricImage) -> AxonometricImage:
         """`img` copied into this slot; the refined images start from it."""
