@@ -216,6 +216,7 @@ def test_service_feeds_the_autopilot_and_stops_cleanly_on_sigterm(
     assert run["latency_ms"]["kind"] == "capture_to_written" and run["first_pose_s"] > 0
     # [service] realtime_priority is 0 by default (onboard/app/priority.py)
     assert run["scheduling"] == "normal"
+    assert 0.0 <= run["host_steal_share"] < 1.0  # /proc/stat's steal over the run (cpu_steal.py)
     rows = {round(float(r["capture_s"]) * 1e6): r
             for r in csv.DictReader((tmp_path / "out" / "latency.csv").open())}
     received_ms = {m["time_usec"]: m["t"] * 1e3 - m["time_usec"] / 1e3 for m in odometry}

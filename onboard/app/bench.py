@@ -43,7 +43,7 @@ def pin_one_core() -> None:
     """Keep OpenCV on the calling thread. The tracker must fit one core of the
     companion computer (drivers and outputs share the others), so timings
     measured with OpenCV's thread pool would promise speed the drone lacks.
-    scipy.fft is already called with workers=1 in onboard.nislam.correlation."""
+    NI-SLAM's correlation (onboard.nislam.correlation) is OpenCV's DFT too."""
     cv2.setNumThreads(1)
 
 

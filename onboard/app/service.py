@@ -36,7 +36,10 @@ import numpy as np
 from onboard.app.allocator import keep_freed_memory
 from onboard.app.bench import pin_one_core
 from onboard.app.config import Config, config_to_toml
+from onboard.app.cpu_steal import CpuTicks, read_ticks, steal_share
+from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.health import HealthMonitor, HealthThresholds
+from onboard.app.latency import LATENCY_FILE, LoopTiming, attach_timing
 from onboard.app.loop_stats import (
     RUN_FILE,
     LoopStats,
@@ -45,7 +48,7 @@ from onboard.app.loop_stats import (
     stats_line,
     write_run_json,
 )
-from onboard.app.latency import LATENCY_FILE, LoopTiming, attach_timing
+from onboard.app.priority import hand_gil_over_promptly, raise_to_realtime
 from onboard.app.replay import (
     CONFIG_FILE,
     GT_AT_FRAMES_FILE,
@@ -56,11 +59,10 @@ from onboard.app.replay import (
     write_text_atomic,
     write_trajectories,
 )
-from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.run_files import FileWrites, LiveTrajectory
-from onboard.app.priority import hand_gil_over_promptly, raise_to_realtime
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
+from onboard.core import attitude_smoothing
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import Health, HealthReport, Tracker, TrackResult
 from onboard.core.pose_gate import PoseGate
@@ -68,7 +70,6 @@ from onboard.core.trajectory import write_tum
 from onboard.fusion.registry import make_tracker
 from onboard.fusion.switching import SwitchingTracker
 from onboard.nislam import kernels
-from onboard.core import attitude_smoothing
 from onboard.outputs.group import Output, make_outputs
 from onboard.outputs.wake import Wake, defer_wakeups
 
@@ -132,6 +133,7 @@ class Service:
             self.sc.start_grace_s, self.sc.recover_s), time.monotonic(), sources.devices)
         self.ready = False
         self.scheduling = "normal"  # what the process runs at (onboard.app.priority)
+        self._ticks_at_start: CpuTicks | None = None
         self.gate = PoseGate()  # no pose the motion model cannot explain goes out trusted
         self._last_seq = 0
         self._offset_s = 0.0  # the tracker's attitude time offset, from its last result
@@ -175,6 +177,7 @@ class Service:
         if self.live is not None:
             self.live.open()
         t_loop = time.monotonic()  # the run's length and rate count from here, not the warm-up
+        self._ticks_at_start = read_ticks()  # the host's steal over the run (onboard/app/cpu_steal.py)
         # So does the wait for the first frame: a cold numba cache (~15 s on a
         # fresh clone) is not a camera that sends nothing (`make run` said
         # "lost: no frames from the camera for 14 s"). A missing device is
@@ -420,8 +423,10 @@ class Service:
         if self.sources.source_stats is not None:
             metrics["source_stats"] = self.sources.source_stats()
         self.timing.finish()
+        steal = steal_share(self._ticks_at_start, read_ticks())
+        host = "" if steal is None else f"; the host stole {100 * steal:.1f} % of the CPUs' time"
         metrics["latency_lines"] = [*self.timing.summary_lines(self._output_stats),
-                                    f"scheduling  {self.scheduling} (onboard/app/priority.py)"]
+                                    f"scheduling  {self.scheduling}{host} (onboard/app/priority.py, cpu_steal.py)"]
         if self.sources.host_mapping is not None:
             # The MAVLink feed's time_usec is on the host's monotonic clock; the
             # trajectories keep the recording's stamps: how one maps onto the other.
@@ -461,6 +466,7 @@ class Service:
                     "keyframe_crc32": None if zs is None else zs["keyframe_crc32"],
                     **self.timing.run_fields(self._frames_offered(), s.resets, self._output_stats),
                     "scheduling": self.scheduling,
+                    "host_steal_share": steal,
                     "outputs": self._output_stats,
                 })
         notes = metrics["output_notes"]
