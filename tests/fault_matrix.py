@@ -107,6 +107,28 @@ def _has(*words: str) -> Callable[[str], bool]:
     return lambda m: all(w in m for w in words)
 
 
+class Stamps:
+    """Monotonic times something was heard (a callback on another thread),
+    and a wait for a condition on them that wakes on each one."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.t: list[float] = []
+
+    def add(self, t: float) -> None:
+        with self.cond:
+            self.t.append(t)
+            self.cond.notify_all()
+
+    def wait(self, pred: Callable[[list[float]], bool], what: str) -> None:
+        with self.cond:
+            assert self.cond.wait_for(lambda: pred(self.t), WAIT_S), what
+
+    def count(self, after: float = 0.0, before: float = float("inf")) -> int:
+        with self.cond:
+            return sum(1 for t in self.t if after < t < before)
+
+
 # --------------------------------------------------------------------------- OAK-D
 
 
@@ -214,8 +236,8 @@ def _mavlink(fault: str, lines: Lines) -> Row:
         port = s.getsockname()[1]
     mavutil = import_mavutil()
     link = FcLink(f"udpin:127.0.0.1:{port}", silence_s=1.0, reconnect_min_s=0.05)
-    heard: list[float] = []
-    link.add_listener(lambda m, t: heard.append(t), ("HEARTBEAT",))
+    heard = Stamps()
+    link.add_listener(lambda m, t: heard.add(t), ("HEARTBEAT",))
     mode = {"v": "talk"}
     stop = threading.Event()
 
@@ -236,16 +258,14 @@ def _mavlink(fault: str, lines: Lines) -> Row:
     link.start()
     th.start()
     try:
-        deadline = time.monotonic() + WAIT_S
-        while len(heard) < 5 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        heard.wait(lambda t: len(t) >= 5, "no heartbeat from the peer")
         t_inject = time.monotonic()
         mode["v"] = "gone" if fault == "peer gone" else "garbage"
         state = "silent" if fault == "peer gone" else "bad data"
         t_warn = lines.wait(_has("autopilot link", f": {state}"), t_inject)
-        n = len(heard)
-        time.sleep(0.3)
-        passed = len(heard) - n
+        n = heard.count()
+        time.sleep(0.3)  # the fault lasts a while (nothing may come meanwhile)
+        passed = heard.count() - n
         t_clear = time.monotonic()
         mode["v"] = "talk"
         t_rec = lines.wait(_has("autopilot link", "recovered"), t_warn)
