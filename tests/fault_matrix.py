@@ -108,8 +108,8 @@ def _has(*words: str) -> Callable[[str], bool]:
 
 
 class Stamps:
-    """Monotonic times something was heard (a callback on another thread),
-    and a wait for a condition on them that wakes on each one."""
+    """Monotonic times something was heard (a callback on another thread);
+    like `Lines`, a wait that wakes on each one."""
 
     def __init__(self) -> None:
         self.cond = threading.Condition()
@@ -120,9 +120,11 @@ class Stamps:
             self.t.append(t)
             self.cond.notify_all()
 
-    def wait(self, pred: Callable[[list[float]], bool], what: str) -> None:
+    def wait(self, what: str, after: float = 0.0, n: int = 1) -> float:
+        """The time of the n-th stamp after `after`; `what` if none comes in WAIT_S."""
         with self.cond:
-            assert self.cond.wait_for(lambda: pred(self.t), WAIT_S), what
+            assert self.cond.wait_for(lambda: self.count(after) >= n, WAIT_S), what
+            return [t for t in self.t if t > after][n - 1]
 
     def count(self, after: float = 0.0, before: float = float("inf")) -> int:
         with self.cond:
@@ -211,7 +213,7 @@ def _myahrs(fault: str, lines: Lines, tmp: Path) -> Row:
         dev.send(cmd, {"silence": "silent", "unplug": "unplugged"}.get(word, word))
         t_warn = lines.wait(_has("myAHRS+", f": {state}"), t_inject)
         if fault == "unplug":
-            time.sleep(0.5)
+            time.sleep(0.5)  # unplugged a while: the fault's duration, not a synchronisation
             t_clear = time.monotonic()
             dev.send("replug", "plugged")
         else:
@@ -258,7 +260,7 @@ def _mavlink(fault: str, lines: Lines) -> Row:
     link.start()
     th.start()
     try:
-        heard.wait(lambda t: len(t) >= 5, "no heartbeat from the peer")
+        heard.wait("no heartbeat from the peer", n=5)
         t_inject = time.monotonic()
         mode["v"] = "gone" if fault == "peer gone" else "garbage"
         state = "silent" if fault == "peer gone" else "bad data"

@@ -77,7 +77,7 @@ def zenoh_router(lines: Lines, tmp: Path) -> Row:
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
     try:
-        heard.wait(lambda t: len(t) >= 5, "no pose reached the ground through the router")
+        heard.wait("no pose reached the ground through the router", n=5)
         assert lines.count(_has("zenoh router")) == 0
         router.stop(signal.SIGKILL)
         t_inject = time.monotonic()
@@ -86,10 +86,8 @@ def zenoh_router(lines: Lines, tmp: Path) -> Row:
         t_rec = lines.wait(_has("zenoh router", "recovered"), t_warn)
         # poses heard at the ground while we said the router was away: must be none
         passed = heard.count(t_warn, t_clear)
-        heard.wait(lambda t: any(s > t_clear for s in t),  # and poses reach the ground again
-                   "no pose reached the ground after the restart")
-        with heard.cond:
-            t_ground = min(t for t in heard.t if t > t_clear)
+        # and poses reach the ground again
+        t_ground = heard.wait("no pose reached the ground after the restart", after=t_clear)
         reminders = lines.count(_has("zenoh router", "still"), t_inject)
         assert reminders == 0 and lines.count(_has("zenoh router", ": no device"), t_inject) == 1
         return Row("zenoh router gone", "the session's routers, polled every 0.25 s",

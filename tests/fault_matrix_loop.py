@@ -105,7 +105,7 @@ def service_fault(fault: str, lines: Lines, tmp: Path) -> Row:
             try:
                 lost_before = sum(svc.stats.lost_reasons.values())
                 changes = svc.stats.health_changes
-                time.sleep(1.0)
+                time.sleep(1.0)  # the fault's duration: a second with the clock an hour ahead
                 passed_wall = sum(svc.stats.lost_reasons.values()) - lost_before
                 unchanged = svc.stats.health_changes == changes
             finally:
