@@ -218,7 +218,8 @@ class Sequence:
             depth_raw = cv2.remap(depth_raw, m.depth_map_x, m.depth_map_y, cv2.INTER_NEAREST,
                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         depth_m = depth_raw.astype(np.float32) / np.float32(self.camera.depth_scale)
-        return RgbdFrame(t_s=pair.t_s, bgr=bgr, depth_m=depth_m, depth_t_s=pair.depth_t_s)
+        depth_t_s = None if pair.depth_t_s is None else pair.depth_t_s + self.camera.depth_lag_s
+        return RgbdFrame(t_s=pair.t_s, bgr=bgr, depth_m=depth_m, depth_t_s=depth_t_s)
 
     def load_all(self, max_frames: int | None = None) -> list[RgbdFrame]:
         """Decode up to `max_frames` frames into memory (benchmarks)."""

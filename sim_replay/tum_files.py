@@ -59,13 +59,23 @@ _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
 # of their benchmark (ICCV 2015, "Dense Continuous-Time Tracking and Mapping
 # with Rolling Shutter RGB-D Cameras"), not a value fitted to these sequences.
 _KINECT_READOUT_S = 0.028
+# Its depth image is captured before the instant its stamp says: 20 ms, set
+# from tum_fr1_rpy the way a rig's clock is calibrated once. With the colour
+# shutter modelled and the depth taken at stamp - 20 ms, the attitude offset
+# the online calibration settles at falls from -18..-23 ms to -1..-5 ms (TUM
+# synchronised the motion capture with the camera's host, so ~0 is the truth),
+# the error against a key from 23 to 15 mm; any lag from -15 to -30 ms gives
+# about the same (docs/nislam-error-budget.md, "The depth's own clock").
+_KINECT_DEPTH_LAG_S = -0.020
 _TUM_CAMERAS: dict[int, CameraModel] = {
     1: CameraModel(517.3, 516.5, 318.6, 255.3, 640, 480, 5000.0,
-                   (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), readout_s=_KINECT_READOUT_S),
+                   (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), readout_s=_KINECT_READOUT_S,
+                   depth_lag_s=_KINECT_DEPTH_LAG_S),
     2: CameraModel(520.9, 521.0, 325.1, 249.7, 640, 480, 5000.0,
-                   (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), readout_s=_KINECT_READOUT_S),
+                   (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), readout_s=_KINECT_READOUT_S,
+                   depth_lag_s=_KINECT_DEPTH_LAG_S),
     3: CameraModel(535.4, 539.2, 320.1, 247.6, 640, 480, 5000.0, (),
-                   readout_s=_KINECT_READOUT_S),
+                   readout_s=_KINECT_READOUT_S, depth_lag_s=_KINECT_DEPTH_LAG_S),
 }
 
 
@@ -104,7 +114,7 @@ def _camera_from_toml(path: Path) -> CameraModel:
         raise NislamError(f"{path}: not valid TOML: {e}") from None
 
     known = {"fx", "fy", "cx", "cy", "width", "height", "depth_scale", "distortion", "q_B_C_xyzw",
-             "readout_s"}
+             "readout_s", "depth_lag_s"}
     unknown = sorted(set(raw) - known)
     if unknown:
         raise NislamError(f"{path}: unknown key '{unknown[0]}' (known: {', '.join(sorted(known))})")
@@ -161,7 +171,11 @@ def _camera_from_toml(path: Path) -> CameraModel:
     if not 0.0 <= readout <= 0.1:
         raise NislamError(
             f"{path}: key 'readout_s' must be 0 (global shutter) to 0.1 s, got {readout}")
-    return CameraModel(fx, fy, cx, cy, width, height, depth_scale, distortion, q, readout)
+    depth_lag = number("depth_lag_s") if "depth_lag_s" in raw else 0.0
+    if not -0.1 <= depth_lag <= 0.1:
+        raise NislamError(f"{path}: key 'depth_lag_s' must be -0.1 to 0.1 s, got {depth_lag}")
+    return CameraModel(fx, fy, cx, cy, width, height, depth_scale, distortion, q, readout,
+                       depth_lag)
 
 
 def read_file_list(path: Path | str) -> tuple[list[tuple[float, str]], int]:

@@ -211,7 +211,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.depth_front_mean_m": NON_NEGATIVE,
     "nislam.time_offset_s": ANY,
     "nislam.time_offset_max_s": NON_NEGATIVE,
-    "nislam.rolling_shutter_readout_s": Range(lo=0.0, hi=0.1),  # rows read out within a frame
+    "nislam.rolling_shutter_readout_s": Range(lo=-1.0, hi=0.1),  # -1: the camera's
     "nislam.rolling_shutter_rate_half_window_s": POSITIVE,
     # FastORB (onboard/fastorb/); other ints >= 0, other floats finite
     "fusion.accel_sd_m_s2": POSITIVE,

@@ -33,6 +33,8 @@ class CameraModel:
     0 = no depth). `distortion`: OpenCV k1 k2 p1 p2 k3 (empty = none).
     `q_B_C_xyzw`: camera-optical-to-body rotation. `readout_s`: a rolling
     shutter's time from the first row to the last (0: global shutter).
+    `depth_lag_s`: when the depth image was captured against its stamp
+    (negative: before it); a reader adds it to `RgbdFrame.depth_t_s`.
     """
 
     fx: float
@@ -45,6 +47,7 @@ class CameraModel:
     distortion: tuple[float, ...] = ()
     q_B_C_xyzw: tuple[float, float, float, float] = IDENTITY_Q_XYZW
     readout_s: float = 0.0
+    depth_lag_s: float = 0.0
 
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height,

@@ -91,6 +91,7 @@ class Key:
     layers: "RotationResidual | None" = None
     shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
     coverage: list[float] = field(default_factory=list)  # last two frames' share of the grid covered
+    r_geom: np.ndarray | None = None  # the geometry's rotation from the attitude at t_s (Prev's)
 
     @property
     def gray_ref(self) -> np.ndarray:

@@ -38,6 +38,9 @@ class Prev:
     base: Key | None
     d_W_m: np.ndarray
     var_W_m2: np.ndarray  # (3,) of the offset
+    # The geometry's rotation from the attitude at t_s (its depth captured at
+    # another instant: tracker._track); None: the same instant.
+    r_geom: np.ndarray | None = None
 
     @property
     def p_W_m(self) -> np.ndarray:

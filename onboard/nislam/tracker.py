@@ -28,6 +28,7 @@ import numpy as np
 from onboard.core import attitude_smoothing
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
+from onboard.core.rotations import so3_exp
 from onboard.nislam import kernels as kern
 from onboard.nislam.attitude_var import attitude_lateral_var_m2, with_attitude_var
 from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate
@@ -57,6 +58,8 @@ class NislamTracker:
     name = "nislam"
 
     def __init__(self, intrinsics: CameraIntrinsics, params: NislamParams = NislamParams()):
+        if params.rolling_shutter_readout_s < 0:  # the camera's own (0: a global shutter)
+            params = dataclasses.replace(params, rolling_shutter_readout_s=intrinsics.readout_s)
         self.intr = intrinsics
         self.p = params
         self.shape = (params.grid_height, params.grid_width)
@@ -114,37 +117,45 @@ class NislamTracker:
         A frame whose depth was captured at another instant than its colour
         (`depth_t_s`) is tracked at the depth's: its gray is taken through the
         rotation between the two (projection.make_cloud), so a Kinect pairing
-        up to 20 ms apart does not shift the texture against the geometry by
-        the rotation in between (at 60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m).
+        up to 20 ms apart, its depth captured 20 ms before its stamp, does not
+        shift the texture against the geometry by the rotation in between (at
+        60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m). Without a body rate (the
+        attitude's first and last 50 ms) it is tracked at the colour's.
         The result keeps the frame's stamp and its colour-time attitude."""
         offset_s = self._calib.offset_s  # the one this frame is tracked with (and reports)
         t_att = frame.t_s + offset_s
         r_cur = attitude.rotation_at(t_att)
         if r_cur is None or not np.all(np.isfinite(r_cur)):
             return self._lost_result(frame.t_s, "no attitude")
-        t_g, r_g, r_cd = frame.t_s, r_cur, None
-        if self.p.depth_time_compensation and frame.depth_t_s is not None \
+        w = None  # the body rate, for the corrections within a frame
+        if self.p.depth_time_compensation or self.p.rolling_shutter_readout_s != 0.0:
+            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
+            w = w if w is not None and np.all(np.isfinite(w)) else None
+        t_g, r_g, r_cd = frame.t_s, r_cur, None  # the geometry's instant, attitude, rotation
+        if self.p.depth_time_compensation and w is not None and frame.depth_t_s is not None \
                 and abs(frame.depth_t_s - frame.t_s) > 1e-4:
-            r_d = attitude.rotation_at(frame.depth_t_s + offset_s)
-            if r_d is None or not np.all(np.isfinite(r_d)):
-                return self._lost_result(frame.t_s, "no attitude")
-            t_g, r_g, r_cd = frame.depth_t_s, r_d, r_cur.T @ r_d
+            # The depth's attitude from the colour's and the body rate: a
+            # second look-up 10-40 ms away would carry a noisy AHRS's jitter
+            # whole into the rotation between them (1 deg white: ~1.4 deg).
+            # Every look-up stays at the colour's instant (t_g: a key's attitude
+            # is looked up again at its own), the geometry's rotation from it
+            # kept with the frame and its key (r_geom).
+            r_cd = so3_exp(w * (frame.depth_t_s - frame.t_s))
+            r_g = r_cur @ r_cd
         cloud = make_cloud(
             frame.bgr, frame.depth_m, self.intr, self.p.min_depth_m, self.p.max_depth_m,
             self.p.pixel_stride, r_cd,
         )
-        if self.p.rolling_shutter_readout_s != 0.0:
+        if self.p.rolling_shutter_readout_s != 0.0 and w is not None:
             # Rows exposed one after another: each brought to the middle row's
             # instant, the one the attitude is looked up at (nislam/shutter.py).
-            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
-            if w is not None:
-                cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
-                                              self.intr.height, self.p.pixel_stride)
+            cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
+                                          self.intr.height, self.p.pixel_stride)
         min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
         if len(cloud) < min_points:
             return self._lost_result(frame.t_s, "too few depth pixels")
         if self._key is None or self._lost or self._coasted_too_long(t_g):
-            return self._restart(frame.t_s, r_cur, t_g, cloud, r_g)
+            return self._restart(frame.t_s, r_cur, cloud, r_g, r_cd)
         t_att = t_g + offset_s
         key = self._key
         finished: list[KeyframeCloud] = []
@@ -177,7 +188,7 @@ class NislamTracker:
             self._count_jump(outcome.p_W_m, t_g)
         peak = outcome.peak
         self._prev = Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
-                           outcome.pose_var[:3])
+                           outcome.pose_var[:3], r_cd)
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
         leaving = not new_key and key.leaving_grid(self.p.min_valid_fraction)
@@ -269,7 +280,10 @@ class NislamTracker:
         # fit of an earlier match in this frame first, then its refinement).
         r_key = attitude.rotation_at(key.t_s + self._offset_s())
         self._deferred.run(key)  # its refinement by an earlier match
-        r_key = key.R_W_C if r_key is None else r_key
+        if r_key is None:
+            r_key = key.R_W_C
+        elif key.r_geom is not None:
+            r_key = r_key @ key.r_geom  # its geometry's attitude
         r_rel = r_key.T @ r_cur  # R_key^-1 R_cur (ref. §2)
         img = project(cloud, r_rel, self.shape, key.img.res_m, front=self._front)
         covered = float(img.mask.mean())
@@ -385,7 +399,7 @@ class NislamTracker:
         self._next_key_id += 1
         cand, o = found
         self._prev = Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
-                           o.pose_var[:3])
+                           o.pose_var[:3], prev.r_geom)
         self._reused_after_pose = cand.keyframe_id
 
     def _rate_difference(
@@ -404,16 +418,18 @@ class NislamTracker:
 
     # ----------------------------------------------------------- key frames
     def _restart(
-        self, t_s: float, r_cur: np.ndarray, t_g: float, cloud: Cloud, r_g: np.ndarray
+        self, t_s: float, r_cur: np.ndarray, cloud: Cloud, r_g: np.ndarray,
+        r_cd: np.ndarray | None,
     ) -> TrackResult:
         """First key, or a new key after a lost spell placed at the last trusted
         position in the same world frame (the reset counter marks the jump).
-        `t_g`, `r_g`: the instant and attitude of the cloud's geometry."""
+        `r_g`: the attitude of the cloud's geometry, `r_cd` its rotation from
+        the attitude at t_s (None: the same)."""
         p_W = np.zeros(3) if self._last_trusted_p is None else self._last_trusted_p.copy()
         if self._key is not None:
             self._reset_counter += 1
         self._lost = False
-        self._prev = Prev(t_g, cloud, r_g, None, p_W, np.zeros(3))
+        self._prev = Prev(t_s, cloud, r_g, None, p_W, np.zeros(3), r_cd)
         finished = self._new_key_from(self._prev)
         self._last_trusted_p = p_W
         return restart_result(t_s, p_W, r_cur, self._key, self._reset_counter,
@@ -452,6 +468,7 @@ class NislamTracker:
             filt=filt,
             slot=slot,
             layers=layers,
+            r_geom=prev.r_geom,
         )
         self._next_key_id += 1
         if self.p.map_keyframes > 0:
