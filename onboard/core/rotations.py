@@ -31,16 +31,6 @@ def so3_log(r: np.ndarray) -> np.ndarray:
     return skew * (0.5 * angle / sin_a)
 
 
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (axis * angle, rad): Rodrigues."""
-    w = np.asarray(w, dtype=np.float64)
-    angle = float(np.linalg.norm(w))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if angle < 1e-9:
-        return np.eye(3) + k  # first order, as so3_log
-    return np.eye(3) + (math.sin(angle) / angle) * k + ((1.0 - math.cos(angle)) / angle**2) * (k @ k)
-
-
 Quat = tuple[float, float, float, float]
 
 

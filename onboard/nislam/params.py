@@ -77,18 +77,17 @@ class NislamParams:
     depth_slope_limited: bool = False  # carry along the minmod slope, its one-sided spread in the variance (kernels._limited_slope)
     depth_sigma_floor_m: float = 0.001  # floor (depth quantisation, ~1 mm); 0 = unweighted (docs/nislam-error-budget.md)
     # A frame whose depth was captured at another instant than its colour
-    # (RgbdFrame.depth_t_s) is tracked at the depth's, its gray taken through
-    # the rotation in between (body rate x time: tracker._track)
+    # (RgbdFrame.depth_t_s): its geometry taken at the depth's attitude, its
+    # gray through the rotation in between (tracker._track)
     depth_time_compensation: bool = True
     # Colour rows exposed one after another over this time (top first); 0 = a
     # global shutter, -1 = the camera's (CameraIntrinsics.readout_s). Each row is
     # rotated to the middle row's instant (onboard/nislam/shutter.py,
     # docs/nislam-error-budget.md).
     rolling_shutter_readout_s: float = -1.0
-    # ... with the body rate from the attitude at t +- this (the depth's
-    # rotation from the colour's too): wider than the calibration's, a noisy
-    # AHRS's rate over +-20 ms is mostly noise (1 deg white: ~35 deg/s) and
-    # the correction would carry it into every row.
+    # ... with the body rate from the attitude at t +- this: wider than the
+    # calibration's, a noisy AHRS's rate over +-20 ms is mostly noise (1 deg
+    # white: ~35 deg/s) and the correction would carry it into every row.
     rolling_shutter_rate_half_window_s: float = 0.05
     # t_z on the key axis from a plane fit of the depth differences: off, its
     # tilt is noise levered onto t_z (docs/nislam-error-budget.md)

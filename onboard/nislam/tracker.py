@@ -28,7 +28,6 @@ import numpy as np
 from onboard.core import attitude_smoothing
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, TrackResult, TrackState
-from onboard.core.rotations import so3_exp
 from onboard.nislam import kernels as kern
 from onboard.nislam.attitude_var import attitude_lateral_var_m2, with_attitude_var
 from onboard.nislam.calibration import OffsetCalibration, RotationResidual, body_rate
@@ -119,64 +118,58 @@ class NislamTracker:
         rotation between the two (projection.make_cloud), so a Kinect pairing
         up to 20 ms apart, its depth captured 20 ms before its stamp, does not
         shift the texture against the geometry by the rotation in between (at
-        60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m). Without a body rate (the
-        attitude's first and last 50 ms) it is tracked at the colour's.
-        The result keeps the frame's stamp and its colour-time attitude."""
+        60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m). The result keeps the
+        frame's stamp and its colour-time attitude."""
         offset_s = self._calib.offset_s  # the one this frame is tracked with (and reports)
         t_att = frame.t_s + offset_s
         r_cur = attitude.rotation_at(t_att)
         if r_cur is None or not np.all(np.isfinite(r_cur)):
             return self._lost_result(frame.t_s, "no attitude")
-        w = None  # the body rate, for the corrections within a frame
-        if self.p.depth_time_compensation or self.p.rolling_shutter_readout_s != 0.0:
-            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
-            w = w if w is not None and np.all(np.isfinite(w)) else None
-        t_g, r_g, r_cd = frame.t_s, r_cur, None  # the geometry's instant, attitude, rotation
-        if self.p.depth_time_compensation and w is not None and frame.depth_t_s is not None \
+        r_g, r_cd = r_cur, None  # the geometry's attitude, its rotation from the colour's
+        if self.p.depth_time_compensation and frame.depth_t_s is not None \
                 and abs(frame.depth_t_s - frame.t_s) > 1e-4:
-            # The depth's attitude from the colour's and the body rate: a
-            # second look-up 10-40 ms away would carry a noisy AHRS's jitter
-            # whole into the rotation between them (1 deg white: ~1.4 deg).
-            # Every look-up stays at the colour's instant (t_g: a key's attitude
-            # is looked up again at its own), the geometry's rotation from it
-            # kept with the frame and its key (r_geom).
-            r_cd = so3_exp(w * (frame.depth_t_s - frame.t_s))
-            r_g = r_cur @ r_cd
+            r_d = attitude.rotation_at(frame.depth_t_s + offset_s)
+            if r_d is not None and np.all(np.isfinite(r_d)):  # else: as if taken with the colour
+                # Every other look-up stays at the colour's instant; the frame and
+                # its key keep the geometry's rotation from it (r_geom), so a
+                # key's attitude looked up again is its projection's.
+                r_g, r_cd = r_d, r_cur.T @ r_d
         cloud = make_cloud(
             frame.bgr, frame.depth_m, self.intr, self.p.min_depth_m, self.p.max_depth_m,
             self.p.pixel_stride, r_cd,
         )
-        if self.p.rolling_shutter_readout_s != 0.0 and w is not None:
+        if self.p.rolling_shutter_readout_s != 0.0:
             # Rows exposed one after another: each brought to the middle row's
             # instant, the one the attitude is looked up at (nislam/shutter.py).
-            cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
-                                          self.intr.height, self.p.pixel_stride)
+            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
+            if w is not None:
+                cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
+                                              self.intr.height, self.p.pixel_stride)
         min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
         if len(cloud) < min_points:
             return self._lost_result(frame.t_s, "too few depth pixels")
-        if self._key is None or self._lost or self._coasted_too_long(t_g):
+        if self._key is None or self._lost or self._coasted_too_long(frame.t_s):
             return self._restart(frame.t_s, r_cur, cloud, r_g, r_cd)
-        t_att = t_g + offset_s
         key = self._key
         finished: list[KeyframeCloud] = []
-        outcome = self._match(key, cloud, t_g, r_g, attitude, t_att)
+        outcome = self._match(key, cloud, frame.t_s, r_g, attitude, t_att)
         reused = False
         if outcome is None or outcome.peak.psr < self.p.psr_keyframe:
             # A failed or weakened match (it may have slid off the true
             # shift, as on blank-turn and yaw-spin): the kept keys are tried
             # before the pose, which takes a firm one's match.
-            found = self._reuse(key, outcome, cloud, t_g, r_g, attitude, t_att)
+            found = self._reuse(key, outcome, cloud, frame.t_s, r_g, attitude, t_att)
             if found is not None:
                 finished.append(self._key_cloud(key))
                 key, outcome = found
                 reused = True
-                self._count_jump(outcome.p_W_m, t_g)
+                self._count_jump(outcome.p_W_m, frame.t_s)
         if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
             # The current frame no longer matches the key: make the last trusted
             # frame the key (it matched, so it overlaps both) and try again.
             finished += self._new_key_from(self._prev)
             key = self._key
-            outcome = self._match(key, cloud, t_g, r_g, attitude, t_att)
+            outcome = self._match(key, cloud, frame.t_s, r_g, attitude, t_att)
         if outcome is None:
             self._lost = True
             return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
@@ -185,9 +178,9 @@ class NislamTracker:
             # The first frame on a key re-used after the last pose: its step
             # from the last position reported is the re-use's jump, judged as
             # an in-place re-use's is (less the distance flown in between).
-            self._count_jump(outcome.p_W_m, t_g)
+            self._count_jump(outcome.p_W_m, frame.t_s)
         peak = outcome.peak
-        self._prev = Prev(t_g, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
+        self._prev = Prev(frame.t_s, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3], r_cd)
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
@@ -195,7 +188,7 @@ class NislamTracker:
         key_id = self._key.keyframe_id
         n_link = self.p.link_every_n_frames
         if n_link > 0 and not (new_key or leaving or reused) and self._frame_count % n_link == 0:
-            self._deferred.add(None, lambda: self._link(key, outcome, cloud, t_g, r_g, attitude,
+            self._deferred.add(None, lambda: self._link(key, outcome, cloud, frame.t_s, r_g, attitude,
                                                         t_att))
         if new_key or leaving:
             # The switching frame is posed against the old key, then becomes the
