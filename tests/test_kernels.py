@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from onboard.nislam import kernels as kern
+from onboard.nislam.projection import warped_gray
 
 RNG = np.random.default_rng(5)
 
@@ -161,9 +162,9 @@ def test_warped_gray_is_the_gray_of_the_homography_image() -> None:
     bgr = (RNG.random((48, 64, 3)) * 255).astype(np.uint8)
     depth = np.ones((48, 64), np.float32)
     _, gray = kern.strided_depth_gray(bgr, depth, 2, 0.1, 5.0)
-    assert np.abs(kern.warped_gray(bgr, 2, np.eye(3)).astype(int) - gray).max() <= 1
+    assert np.abs(warped_gray(bgr, 2, np.eye(3)).astype(int) - gray).max() <= 1
     shift = np.array([[1.0, 0.0, 4.0], [0.0, 1.0, 2.0], [0.0, 0.0, 1.0]])
-    warped = kern.warped_gray(bgr, 2, shift).astype(int)
+    warped = warped_gray(bgr, 2, shift).astype(int)
     assert np.abs(warped[:-1, :-2] - gray[1:, 2:]).max() <= 1
 
 

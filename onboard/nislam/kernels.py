@@ -173,38 +173,29 @@ def block_means(
 
 
 @njit(cache=True, nogil=True)
-def warped_gray(bgr: np.ndarray, stride: int, hmat: np.ndarray) -> np.ndarray:
-    """8-bit gray of every stride-th pixel taken from the colour image at the
-    homography hmat (3 x 3, pixel to pixel, full resolution) of that pixel,
-    bilinear, borders replicated; gray as in strided_depth_gray (to within
-    the rounding of the interpolation)."""
-    hh, ww = bgr.shape[0], bgr.shape[1]
-    rows = (hh + stride - 1) // stride
-    cols = (ww + stride - 1) // stride
-    out = np.empty((rows, cols), np.uint8)
+def shutter_rays(rays, depth, tau_rows, wx, wy, wz):
+    """Each row's rays and depths turned by tau omega (first order) to the
+    middle row's instant (onboard/nislam/shutter.py): (x, y, 1) + tau
+    omega x (x, y, 1), renormalised to unit depth, the depth scaled by the
+    new z. float32 throughout, one pass (0.1 ms at 320 x 240 against 0.6 ms
+    for numpy's temporaries)."""
+    rows, cols = depth.shape
+    out_rays = np.empty_like(rays)
+    out_depth = np.empty_like(depth)
+    one = np.float32(1.0)
     for i in range(rows):
-        v = float(i * stride)
+        t = tau_rows[i]
         for j in range(cols):
-            u = float(j * stride)
-            wz = hmat[2, 0] * u + hmat[2, 1] * v + hmat[2, 2]
-            x = (hmat[0, 0] * u + hmat[0, 1] * v + hmat[0, 2]) / wz
-            y = (hmat[1, 0] * u + hmat[1, 1] * v + hmat[1, 2]) / wz
-            x = min(max(x, 0.0), ww - 1.0)
-            y = min(max(y, 0.0), hh - 1.0)
-            x0 = min(int(x), ww - 2)
-            y0 = min(int(y), hh - 2)
-            fx = x - x0
-            fy = y - y0
-            acc = 0.0
-            for dy in range(2):
-                for dx in range(2):
-                    wgt = (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy)
-                    b = bgr[y0 + dy, x0 + dx, 0]
-                    g = bgr[y0 + dy, x0 + dx, 1]
-                    r = bgr[y0 + dy, x0 + dx, 2]
-                    acc += wgt * (0.114 * b + 0.587 * g + 0.299 * r)
-            out[i, j] = np.uint8(min(acc + 0.5, 255.0))
-    return out
+            x = rays[i, j, 0]
+            y = rays[i, j, 1]
+            xn = x + t * (wy - wz * y)
+            yn = y + t * (wz * x - wx)
+            zn = one + t * (wx * y - wy * x)
+            out_rays[i, j, 0] = xn / zn
+            out_rays[i, j, 1] = yn / zn
+            out_rays[i, j, 2] = one
+            out_depth[i, j] = depth[i, j] * zn
+    return out_rays, out_depth
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -459,7 +450,10 @@ def warm_up() -> None:
                           0.0015, 0.001, True, 2, 4.0, True)
     refine_key(f32.copy(), f32.copy(), f32.copy(), f32, f32, f32, 0, 0, 0.1, 0.1, 0.0, 0.1)
     strided_depth_gray(np.zeros((4, 4, 3), np.uint8), f32, 2, 0.2, 6.0)
-    warped_gray(np.zeros((4, 4, 3), np.uint8), 2, np.eye(3))
+    rays = np.zeros((4, 4, 3), np.float32)
+    rays.setflags(write=False)  # the shared unit rays (projection._rays) are read-only
+    shutter_rays(rays, f32, np.zeros(4, np.float32), np.float32(0.0), np.float32(0.0),
+                 np.float32(0.0))
     # Overlap windows are contiguous views when the shift has no column part,
     # strided ones otherwise: both layouts get compiled.
     block_means(f32, f32, f32, 2)

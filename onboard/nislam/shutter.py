@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from onboard.nislam.kernels import shutter_rays
 from onboard.nislam.projection import Cloud
 
 
@@ -38,16 +39,6 @@ def rolling_shutter_cloud(
     rows = cloud.depth_m.shape[0]
     tau = (readout_s * (np.arange(rows, dtype=np.float32) * stride / height_px - 0.5)).astype(
         np.float32)
-    wx, wy, wz = (np.float32(c) for c in omega_rad_s)
-    x = cloud.rays[..., 0]
-    y = cloud.rays[..., 1]
-    t = tau[:, None]
-    # (x, y, 1) + tau omega x (x, y, 1)
-    xn = x + t * (wy - wz * y)
-    yn = y + t * (wz * x - wx)
-    zn = 1.0 + t * (wx * y - wy * x)
-    rays = np.empty_like(cloud.rays)
-    rays[..., 0] = xn / zn
-    rays[..., 1] = yn / zn
-    rays[..., 2] = 1.0
-    return Cloud((cloud.depth_m * zn).astype(np.float32), cloud.bgr, cloud.gray8, rays)
+    w = np.asarray(omega_rad_s, np.float32)
+    rays, depth = shutter_rays(cloud.rays, cloud.depth_m, tau, w[0], w[1], w[2])
+    return Cloud(depth, cloud.bgr, cloud.gray8, rays)
