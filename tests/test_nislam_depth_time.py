@@ -17,7 +17,8 @@ from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
 from sim_replay.tum import open_sequence
 from sim_replay.tum_files import load_camera
 
-FR3 = "fx = 535.4\nfy = 539.2\ncx = 320.1\ncy = 247.6\nwidth = 640\nheight = 480\ndepth_scale = 5000.0\n"
+FR3 = ("fx = 535.4\nfy = 539.2\ncx = 320.1\ncy = 247.6\nwidth = 640\nheight = 480\n"
+       "depth_scale = 5000.0\n")
 
 
 def test_tum_cameras_capture_depth_before_its_stamp(tmp_path, shared_data):

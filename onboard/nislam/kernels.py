@@ -177,7 +177,7 @@ def shutter_rays(rays, depth, tau_rows, wx, wy, wz):
     """Each row's rays and depths turned by tau omega (first order) to the
     middle row's instant (onboard/nislam/shutter.py): (x, y, 1) + tau
     omega x (x, y, 1), renormalised to unit depth, the depth scaled by the
-    new z. float32 throughout, one pass (0.1 ms at 320 x 240 against 0.6 ms
+    new z. float32 throughout, one pass (0.26 ms at 320 x 240 against 0.62 ms
     for numpy's temporaries)."""
     rows, cols = depth.shape
     out_rays = np.empty_like(rays)

@@ -114,12 +114,12 @@ class NislamTracker:
         """Track one frame; attitude is looked up at the capture time + offset.
 
         A frame whose depth was captured at another instant than its colour
-        (`depth_t_s`) is tracked at the depth's: its gray is taken through the
-        rotation between the two (projection.make_cloud), so a Kinect pairing
-        up to 20 ms apart, its depth captured 20 ms before its stamp, does not
-        shift the texture against the geometry by the rotation in between (at
-        60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m). The result keeps the
-        frame's stamp and its colour-time attitude."""
+        (`depth_t_s`) takes its geometry at the depth's attitude and its gray
+        through the rotation between the two (projection.make_cloud), so a
+        Kinect pairing up to 20 ms apart, its depth captured 20 ms before its
+        stamp, does not shift the texture against the geometry by the rotation
+        in between (at 60 deg/s, 0.4 deg a frame: ~10 mm at 1.5 m). The result
+        keeps the frame's stamp and its colour-time attitude."""
         offset_s = self._calib.offset_s  # the one this frame is tracked with (and reports)
         t_att = frame.t_s + offset_s
         r_cur = attitude.rotation_at(t_att)
@@ -188,8 +188,8 @@ class NislamTracker:
         key_id = self._key.keyframe_id
         n_link = self.p.link_every_n_frames
         if n_link > 0 and not (new_key or leaving or reused) and self._frame_count % n_link == 0:
-            self._deferred.add(None, lambda: self._link(key, outcome, cloud, frame.t_s, r_g, attitude,
-                                                        t_att))
+            self._deferred.add(None, lambda: self._link(key, outcome, cloud, frame.t_s, r_g,
+                                                        attitude, t_att))
         if new_key or leaving:
             # The switching frame is posed against the old key, then becomes the
             # key with that pose (ref. "Per-frame order", step 6): made after
