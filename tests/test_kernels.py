@@ -186,3 +186,37 @@ def test_depth_sums_carry_keeps_cells_next_to_holes() -> None:
     # Cells with no filled cell within two on an axis (1/16 here) keep the bias.
     carried_bias = carried[kern.SUM_D] / carried[kern.SUM_W] + tz
     assert abs(carried_bias) < abs(bias) / 8
+
+
+def test_correlation_kernels_give_numpys_bits() -> None:
+    """The filter's one-pass kernels reproduce the numpy passes they replaced
+    bit for bit (the poses of every replay stay byte-identical): the kernel's
+    exponent (NaN kept), the whitened gray, and the lobe's 4-connected region
+    around the window's centre as scipy.ndimage.label finds it."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    k = (rng.standard_normal((36, 48)) * 300.0).astype(np.float32)
+    k[5, 7] = np.nan
+    sq, scale = np.float32(250.0), np.float32(-3.1e-4)
+    want = k * np.float32(-2.0)
+    want += sq
+    np.maximum(want, np.float32(0.0), out=want)
+    want *= scale
+    got = kern.kernel_exponent(k.copy(), sq, scale)
+    assert np.array_equal(got, want, equal_nan=True) and np.isnan(got[5, 7])
+
+    gray = rng.random((36, 48)).astype(np.float32)
+    mask = (rng.random((36, 48)) > 0.4).astype(np.float32)
+    want = gray - np.float32(0.37)
+    want *= mask
+    assert np.array_equal(kern.masked_centred(gray, mask, np.float32(0.37)), want)
+
+    for _ in range(20):
+        above = rng.standard_normal((25, 25))
+        above[12, 12] = abs(above[12, 12]) + 0.1
+        labels, _n = ndimage.label(above > 0.0)
+        region = kern.connected_above(above)
+        assert np.array_equal(region == 1, labels == labels[12, 12])
+    above[12, 12] = -1.0  # the centre below: no region
+    assert not kern.connected_above(above).any()

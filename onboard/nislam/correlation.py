@@ -14,7 +14,8 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-from scipy import ndimage
+
+from onboard.nislam.kernels import connected_above, kernel_exponent, masked_centred
 
 # The filter's transforms are OpenCV's real DFT and its spectrum products, in
 # OpenCV's packed layout (CCS: a real (H, W) array). At 480 x 360 float32 they
@@ -107,12 +108,10 @@ class KernelCorrelationFilter:
         """k^{xz} over all shifts: exp(-||x - shift(z)||^2 / (sigma^2 N)) (Eq. 11),
         with the cross term from one inverse DFT (circulant trick, Lemma 1)."""
         k = idft_real(cv2.mulSpectrums(x_hat, self._z_hat, 0, conjB=True))
-        # In place: this runs on every frame over the whole grid, and fresh
-        # temporaries of that size cost more than the arithmetic.
-        k *= np.float32(-2.0)
-        k += np.float32(x_sq + self._z_sq)
-        np.maximum(k, np.float32(0.0), out=k)
-        k *= np.float32(-1.0 / (self.sigma**2 * self.n_cells))
+        # In place and in one pass: this runs on every frame over the whole
+        # grid, where numpy's four passes cost more than the arithmetic.
+        kernel_exponent(k, np.float32(x_sq + self._z_sq),
+                        np.float32(-1.0 / (self.sigma**2 * self.n_cells)))
         return cv2.exp(k, dst=k)
 
     def train(self, z: np.ndarray) -> None:
@@ -194,8 +193,7 @@ def _lobe_centroid(r: np.ndarray, v: int, u: int, r_max: float) -> tuple[float, 
     rows = np.arange(v - e, v + e + 1) % h
     cols = np.arange(u - e, u + e + 1) % w
     above = r[np.ix_(rows, cols)].astype(np.float64) - 0.5 * r_max
-    labels, _ = ndimage.label(above > 0.0)
-    weight = np.where(labels == labels[e, e], above, 0.0)
+    weight = np.where(connected_above(above) == 1, above, 0.0)
     total = float(weight.sum())
     if not total > 0.0:
         return None
@@ -236,6 +234,4 @@ def whiten(gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
     hole layout of the two images)."""
     n = float(mask.sum())
     mean = float(np.vdot(gray, mask)) / n if n > 0 else 0.0
-    out = gray - np.float32(mean)
-    out *= mask
-    return out
+    return masked_centred(gray, mask, np.float32(mean))
