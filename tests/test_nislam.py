@@ -452,6 +452,11 @@ def test_unrelated_scene_is_not_trusted(scene):
 
 
 # ------------------------------------------------------------------ key re-use
+# The pan's keys were laid out with Eq. 17's own frame as the new key (key 1
+# near 12 deg, the re-use of key 0 on the last frame): its tests pin that.
+PAN_PARAMS = dict(psr_keyframe=150.0, key_from_last_firm_frame=False)
+
+
 def _pan_out_and_back(step_deg: float = 3.0, n: int = 10):
     """Pan 0 -> 30 deg and back to 0 while drifting 2 mm/frame sideways."""
     angles = [step_deg * k for k in range(n + 1)] + [step_deg * k for k in range(n - 1, -1, -1)]
@@ -467,7 +472,7 @@ def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
     from key 1). Measured: key 0 re-used, error < 0.3 mm; without kept keys,
     key 2 starts there."""
     poses = _pan_out_and_back()
-    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, map_keyframes=map_keyframes))
+    tracker = NislamTracker(INTR, _params(**PAN_PARAMS, map_keyframes=map_keyframes))
     results = _track_poses(tracker, scene, poses)
     assert all(r.trusted for r in results)
     assert sum(r.new_keyframe for r in results) == (2 if map_keyframes else 3)
@@ -492,8 +497,34 @@ def test_key_reuse_that_jumps_bumps_the_reset_counter(scene):
     reset, on the re-use frame only."""
     poses = _pan_out_and_back()
     tracker = NislamTracker(
-        INTR, _params(psr_keyframe=150.0, reuse_reset_jump_m=0.0, search_speed_m_s=0.0)
+        INTR, _params(**PAN_PARAMS, reuse_reset_jump_m=0.0, search_speed_m_s=0.0)
     )
     results = _track_poses(tracker, scene, poses)
     assert [r.reset_counter for r in results] == [0] * (len(results) - 1) + [1]
     assert results[-1].keyframe_reused
+
+
+@pytest.mark.parametrize("from_last_firm", [True, False])
+def test_new_key_starts_from_the_last_firm_frame(scene, from_last_firm):
+    """The pan out with psr_keyframe 150: the frame whose PSR falls below T_r
+    is posed on key 0 and announces key 1 (Eq. 17). Key 1 is made from the
+    frame before it, the last one matched firmly (its pose is the better
+    start: every frame on the key inherits it), or with the setting off from
+    the announcing frame itself, as in the paper; the next frames are
+    measured against it either way."""
+    poses = _pan_out_and_back()[:8]
+    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0,
+                                          key_from_last_firm_frame=from_last_firm))
+    results = []
+    for r in _track_poses(tracker, scene, poses):
+        results.append(r)
+    k = next(i for i, r in enumerate(results) if i > 0 and r.new_keyframe)
+    assert results[k - 1].psr >= 150.0 > results[k].psr
+    src = k - 1 if from_last_firm else k
+    key = tracker.finish()
+    assert key is not None and key.keyframe_id == 1
+    assert key.t_s == pytest.approx(results[src].t_s)
+    np.testing.assert_allclose(key.p_W_m, results[src].p_W_m, atol=1e-12)
+    assert all(r.reference_keyframe_id == 1 for r in results[k + 1:])
+    for e in _errors_mm(results, poses):
+        assert np.max(np.abs(e)) < POS_TOL_M * 1000

@@ -180,6 +180,7 @@ class NislamTracker:
             # an in-place re-use's is (less the distance flown in between).
             self._count_jump(outcome.p_W_m, frame.t_s)
         peak = outcome.peak
+        before = self._prev
         self._prev = Prev(frame.t_s, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
                            outcome.pose_var[:3], r_cd)
         self._last_trusted_p = outcome.p_W_m
@@ -200,6 +201,9 @@ class NislamTracker:
             finished.append(self._key_cloud(self._key))
             key_id = self._next_key_id
             prev = self._prev
+            if new_key and self.p.key_from_last_firm_frame and not reused \
+                    and before is not None and before.base is key:
+                prev = before  # matched firmly on this key: the better pose to start from
             if new_key:
                 self._deferred.add(None, lambda: self._new_key_from(prev, hand_over=False))
             else:
