@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pytest
 from fake_results import FakeCamera, NullRunner, ScriptedTracker
-from test_nislam import INTR, PAN_PARAMS, Scene, _errors_mm, _pan_out_and_back, _params, _track_poses
+from test_nislam import INTR, Scene, _errors_mm, _pan_out_and_back, _params, _track_poses
 
 from onboard.app import service as service_mod
 from onboard.app.config import load_config
@@ -39,7 +39,7 @@ def _pan(scene: Scene, in_place: bool, finish: bool, monkeypatch: pytest.MonkeyP
     with monkeypatch.context() as m:
         if in_place:
             m.setattr(deferred.Deferred, "add", lambda self, target, job: job())
-        tracker = NislamTracker(INTR, _params(**PAN_PARAMS, map_keyframes=16))
+        tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, map_keyframes=16))
         if finish:
             track = tracker.track
 

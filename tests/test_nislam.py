@@ -452,11 +452,6 @@ def test_unrelated_scene_is_not_trusted(scene):
 
 
 # ------------------------------------------------------------------ key re-use
-# The pan's keys were laid out with Eq. 17's own frame as the new key (key 1
-# near 12 deg, the re-use of key 0 on the last frame): its tests pin that.
-PAN_PARAMS = dict(psr_keyframe=150.0, key_from_last_firm_frame=False)
-
-
 def _pan_out_and_back(step_deg: float = 3.0, n: int = 10):
     """Pan 0 -> 30 deg and back to 0 while drifting 2 mm/frame sideways."""
     angles = [step_deg * k for k in range(n + 1)] + [step_deg * k for k in range(n - 1, -1, -1)]
@@ -472,7 +467,7 @@ def test_returning_view_reuses_the_kept_key(scene, map_keyframes):
     from key 1). Measured: key 0 re-used, error < 0.3 mm; without kept keys,
     key 2 starts there."""
     poses = _pan_out_and_back()
-    tracker = NislamTracker(INTR, _params(**PAN_PARAMS, map_keyframes=map_keyframes))
+    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0, map_keyframes=map_keyframes))
     results = _track_poses(tracker, scene, poses)
     assert all(r.trusted for r in results)
     assert sum(r.new_keyframe for r in results) == (2 if map_keyframes else 3)
@@ -497,7 +492,7 @@ def test_key_reuse_that_jumps_bumps_the_reset_counter(scene):
     reset, on the re-use frame only."""
     poses = _pan_out_and_back()
     tracker = NislamTracker(
-        INTR, _params(**PAN_PARAMS, reuse_reset_jump_m=0.0, search_speed_m_s=0.0)
+        INTR, _params(psr_keyframe=150.0, reuse_reset_jump_m=0.0, search_speed_m_s=0.0)
     )
     results = _track_poses(tracker, scene, poses)
     assert [r.reset_counter for r in results] == [0] * (len(results) - 1) + [1]

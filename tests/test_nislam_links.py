@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_nislam import DT, INTR, PAN_PARAMS, Scene, TableAttitude, _pan_out_and_back, _params
+from test_nislam import DT, INTR, Scene, TableAttitude, _pan_out_and_back, _params
 
 from onboard.core.messages import RgbdFrame
 from onboard.nislam.tracker import NislamTracker
@@ -23,7 +23,7 @@ def _pan_with_misplaced_key(scene, link_every_n_frames: int, err_m: float = 0.02
     along x when it is made: the error a weak switching match can give a new
     key. Returns the position errors [mm] and the results."""
     poses = _pan_out_and_back()
-    tracker = NislamTracker(INTR, _params(**PAN_PARAMS,
+    tracker = NislamTracker(INTR, _params(psr_keyframe=150.0,
                                           link_every_n_frames=link_every_n_frames))
     att = TableAttitude()
     c0 = np.asarray(poses[0][1], float)

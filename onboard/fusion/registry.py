@@ -69,7 +69,7 @@ def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
 
     # The filter clones a key's fused position at the frame that announces it
     # (onboard.fusion.fused) and NI-SLAM's own key positions never reach the
-    # output, so its keys stay at the paper's frame (Eq. 17).
+    # output, so its keys stay at the paper's frame (Eq. 17) whatever the setting.
     nislam = NislamTracker(intrinsics, dataclasses.replace(_nislam_params(cfg),
                                                            key_from_last_firm_frame=False))
     return FusedTracker([nislam, _make_fastorb(intrinsics, cfg)], params)

@@ -93,13 +93,12 @@ class NislamParams:
     # tilt is noise levered onto t_z (docs/nislam-error-budget.md)
     depth_tilt_fit: bool = False
     depth_tilt_max_rad: float = 0.026  # ~1.5 deg: larger tilts are fit failures
-    # Eq. 17's new key made from the last frame matched firmly (PSR >= T_r)
-    # on the key, not from the frame whose PSR fell below T_r: a key's
-    # position is its frame's pose, which every frame on it inherits, and the
-    # weakened match is the least accurate of the old key's life
-    # (docs/nislam-error-budget.md, "The new key from the last firm frame").
-    # The fused tracker positions keys itself and keeps the paper's frame.
-    key_from_last_firm_frame: bool = True
+    # Eq. 17's new key made from the last frame matched firmly (PSR >= T_r) on
+    # the key instead of the frame whose PSR fell below T_r: better on the
+    # Kinect's tum_fr1_rpy, worse on most synthetic flights (fewer frames of
+    # overlap, more keys), so off (docs/nislam-error-budget.md, "The new key
+    # from the last firm frame"). The fused tracker always keeps the paper's.
+    key_from_last_firm_frame: bool = False
     calibrate_time_offset: bool = True  # estimate the attitude time offset online
     calibrate_every_n_frames: int = 4  # residual-rotation fit for the calibration on every n-th frame
     calibrate_settle_updates: int = 200  # ... but on every frame until this many updates
