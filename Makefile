@@ -14,6 +14,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -e '.[dev]'
+	$(BIN)/python -m onboard.app.warm
 	touch $@
 
 # The main job: the onboard service on a synthetic 20 s orbit (exact ground
