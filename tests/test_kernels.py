@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from onboard.nislam import filter_kernels
 from onboard.nislam import kernels as kern
 from onboard.nislam.projection import warped_gray
 
@@ -203,20 +204,20 @@ def test_correlation_kernels_give_numpys_bits() -> None:
     want += sq
     np.maximum(want, np.float32(0.0), out=want)
     want *= scale
-    got = kern.kernel_exponent(k.copy(), sq, scale)
+    got = filter_kernels.kernel_exponent(k.copy(), sq, scale)
     assert np.array_equal(got, want, equal_nan=True) and np.isnan(got[5, 7])
 
     gray = rng.random((36, 48)).astype(np.float32)
     mask = (rng.random((36, 48)) > 0.4).astype(np.float32)
     want = gray - np.float32(0.37)
     want *= mask
-    assert np.array_equal(kern.masked_centred(gray, mask, np.float32(0.37)), want)
+    assert np.array_equal(filter_kernels.masked_centred(gray, mask, np.float32(0.37)), want)
 
     for _ in range(20):
         above = rng.standard_normal((25, 25))
         above[12, 12] = abs(above[12, 12]) + 0.1
         labels, _n = ndimage.label(above > 0.0)
-        region = kern.connected_above(above)
+        region = filter_kernels.connected_above(above)
         assert np.array_equal(region == 1, labels == labels[12, 12])
     above[12, 12] = -1.0  # the centre below: no region
-    assert not kern.connected_above(above).any()
+    assert not filter_kernels.connected_above(above).any()

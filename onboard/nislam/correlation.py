@@ -15,7 +15,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from onboard.nislam.kernels import connected_above, kernel_exponent, masked_centred
+from onboard.nislam.filter_kernels import connected_above, kernel_exponent, masked_centred
 
 # The filter's transforms are OpenCV's real DFT and its spectrum products, in
 # OpenCV's packed layout (CCS: a real (H, W) array). At 480 x 360 float32 they
