@@ -510,9 +510,7 @@ def test_new_key_starts_from_the_last_firm_frame(scene, from_last_firm):
     poses = _pan_out_and_back()[:8]
     tracker = NislamTracker(INTR, _params(psr_keyframe=150.0,
                                           key_from_last_firm_frame=from_last_firm))
-    results = []
-    for r in _track_poses(tracker, scene, poses):
-        results.append(r)
+    results = _track_poses(tracker, scene, poses)
     k = next(i for i, r in enumerate(results) if i > 0 and r.new_keyframe)
     assert results[k - 1].psr >= 150.0 > results[k].psr
     src = k - 1 if from_last_firm else k

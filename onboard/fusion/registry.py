@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 from onboard import NislamError
 from onboard.core.camera import CameraIntrinsics
@@ -38,20 +38,17 @@ class TrackerSections(Protocol):
     def fastorb(self) -> FastOrbParams: ...
 
 
-def _nislam_params(cfg: TrackerSections) -> NislamParams:
+def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections, **overrides: Any) -> Tracker:
+    """`overrides`: NislamParams fields the caller fixes whatever the config says."""
+    from onboard.nislam.tracker import NislamTracker
+
     # Noise a replay adds to the attitude (`--attitude-noise-deg`, [attitude]
     # noise_deg) comes on top of the AHRS's own: independent, in quadrature.
     params = cfg.nislam
     added = getattr(getattr(cfg, "attitude", None), "noise_deg", 0.0)
     if added > 0.0:
-        params = dataclasses.replace(params, attitude_sd_deg=math.hypot(params.attitude_sd_deg, added))
-    return params
-
-
-def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
-    from onboard.nislam.tracker import NislamTracker
-
-    return NislamTracker(intrinsics, _nislam_params(cfg))
+        overrides.setdefault("attitude_sd_deg", math.hypot(params.attitude_sd_deg, added))
+    return NislamTracker(intrinsics, dataclasses.replace(params, **overrides))
 
 
 def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
@@ -65,13 +62,10 @@ def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
 
     # NI-SLAM first: its key-frame clouds make the map (onboard.fusion.fused).
     params = getattr(cfg, "fusion", None) or FusionParams()
-    from onboard.nislam.tracker import NislamTracker
-
     # The filter clones a key's fused position at the frame that announces it
     # (onboard.fusion.fused) and NI-SLAM's own key positions never reach the
     # output, so its keys stay at the paper's frame (Eq. 17) whatever the setting.
-    nislam = NislamTracker(intrinsics, dataclasses.replace(_nislam_params(cfg),
-                                                           key_from_last_firm_frame=False))
+    nislam = _make_nislam(intrinsics, cfg, key_from_last_firm_frame=False)
     return FusedTracker([nislam, _make_fastorb(intrinsics, cfg)], params)
 
 
