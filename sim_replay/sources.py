@@ -6,8 +6,8 @@ through the same interfaces as the hardware drivers.
   the MAVLink feed stamps on the host's clock).
 - `ReplayCamera` is a `onboard.core.sources.CameraSource`: it publishes each frame
   into a newest-frame slot FRAME_DELIVERY_S after the replay clock reaches
-  its stamp (decoding it before, once the loop took the last one), and
-  closes the slot after the last one.
+  its stamp (decoding it just before that, `DecodeLead`), and closes the
+  slot after the last one.
 - `ReplayAttitude` pushes `AttitudeSample`s (R_W_B) into a sink when the
   clock reaches their stamps: `attitude.txt` (AHRS body in W) when the
   sequence has one, else ground truth (the camera's own orientation, mount
@@ -26,6 +26,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,9 +60,38 @@ TAIL_S = 0.2  # ... and this long after the last one
 # yet; replace it with `nislam run`'s `source` stage on one (docs/latency.md).
 FRAME_DELIVERY_S = 0.033
 # The longest the camera thread waits for the loop to take a frame before it
-# decodes the next (a loop still busy with the last frame): a third of a
-# 30 Hz frame period, leaving the decoding (~15 ms here) the rest.
+# goes on to the next (a loop still busy with the last frame): a third of a
+# 30 Hz frame period, leaving the decoding (~10 ms here) the rest.
 HANDOVER_WAIT_S = 0.010
+
+
+class DecodeLead:
+    """How long before a frame's delivery the replay camera starts decoding
+    it: 1.5x the slowest of the last `n` decodes + 3 ms (wall time); at once
+    while none was timed.
+
+    A camera's driver thread converts a frame when it arrives and hands it
+    over; the OAK's then sleeps on its device queue until the next one, so
+    nothing of it runs while the loop tracks. The replay decoded the next
+    frame right after the hand-over instead, beside the tracker: on the 2-core
+    VM that doubled the tracker's wall time (30 s `circle`: p50 7.4 ms against
+    3.8 ms of CPU) and put 4 ms on every pose's latency (docs/latency.md,
+    "Stop 33"). Started this much before the delivery, the decoding falls in
+    the loop's idle time unless the tracker takes most of a frame period."""
+
+    def __init__(self, n: int = 30, factor: float = 1.5, extra_s: float = 0.003) -> None:
+        self._decode_s: deque[float] = deque(maxlen=n)
+        self.factor = factor
+        self.extra_s = extra_s
+
+    def add(self, decode_s: float) -> None:
+        self._decode_s.append(decode_s)
+
+    @property
+    def lead_s(self) -> float:
+        if not self._decode_s:
+            return math.inf
+        return self.factor * max(self._decode_s) + self.extra_s
 
 
 class ReplayClock:
@@ -179,6 +209,7 @@ class ReplayCamera(DriverThread):
         self.published = 0
         self.unreadable = 0
         self.late = 0  # frames skipped because the next one was already due (see _run)
+        self.decode_lead = DecodeLead()
 
     def start(self) -> None:
         self.clock.start()
@@ -212,7 +243,12 @@ class ReplayCamera(DriverThread):
                                     "that are already stale (counted as late)", self.name)
                     self.late += 1
                     continue
-                frame = self.seq.read_frame(int(i))  # decode ahead of its stamp
+                lead_s = self.decode_lead.lead_s * self.clock.speed  # in recording time
+                if not self.clock.wait_until(t_play + self.delivery_s - lead_s, self._stop):
+                    return
+                t0 = time.monotonic()
+                frame = self.seq.read_frame(int(i))  # decode just before it is due
+                self.decode_lead.add(time.monotonic() - t0)
                 if frame is None:
                     self.unreadable += 1
                     continue

@@ -230,6 +230,41 @@ def test_replay_camera_decodes_the_next_frame_once_the_loop_took_the_last(tmp_pa
     assert all(put == taken for put, taken in taken_at_read)  # each read after the take
 
 
+def test_replay_camera_decodes_a_frame_just_before_it_is_due(tmp_path: Path) -> None:
+    """The decoding of a frame starts its `DecodeLead` before the frame's
+    delivery, not at the last hand-over, where it ran beside the loop's
+    tracker (on the 2-core VM it doubled the tracker's wall time)."""
+    seq_dir = make_sequence(tmp_path / "seq", n_frames=20)
+    rp = open_replay(seq_dir)
+    cam = rp.camera
+    due = rp.seq.frame_times_s + cam.delivery_s
+    read = rp.seq.read_frame
+    starts: list[tuple[int, float, float]] = []  # (frame, recording time, lead [s])
+
+    def read_frame(i: int):
+        starts.append((i, rp.clock.now_s(), cam.decode_lead.lead_s))
+        time.sleep(0.003)  # a decode of at least 3 ms: the lead is at least 7.5 ms
+        return read(i)
+
+    rp.seq.read_frame = read_frame
+    rp.start()
+    try:
+        seq = 0
+        while (got := cam.take(seq, WAIT_S)) is not None:
+            seq = got[0]
+    finally:
+        assert rp.stop(10)
+    assert cam.published + cam.late == 20 and len(starts) == cam.published
+    assert math.isinf(starts[0][2])  # nothing timed yet: the first frame at once
+    timed = starts[1:]
+    assert all(t >= due[i] - lead - 1e-3 for i, t, lead in timed)  # not before its lead
+    assert all(lead >= 0.0075 for _, _, lead in timed)
+    # ... and not at the last hand-over: a frame's decoding starts late in the
+    # period after the frame before it was delivered (before: at once).
+    after_last = [t - due[i - 1] for i, t, _ in timed if i > 0]
+    assert np.median(after_last) > 0.3 * (due[1] - due[0])
+
+
 def test_replay_drivers_play_at_the_recording_pace(tmp_path: Path) -> None:
     seq_dir = make_sequence(tmp_path / "seq", n_frames=15)
     rp = open_replay(seq_dir)
