@@ -9,16 +9,35 @@ from __future__ import annotations
 
 import time
 
+from numba.core.dispatcher import Dispatcher
+
 from onboard.core import attitude_smoothing
 from onboard.fastorb import kernels as fastorb_kernels
 from onboard.fastorb import refine_kernels
+from onboard.nislam import filter_kernels
 from onboard.nislam import kernels as nislam_kernels
+
+
+WARMED = (nislam_kernels, attitude_smoothing, fastorb_kernels, refine_kernels)
+
+
+def warm_up() -> None:
+    for module in WARMED:
+        module.warm_up()  # nislam_kernels' includes filter_kernels'
+
+
+def compiled_signatures() -> dict[str, int]:
+    """Each numba kernel's count of compiled (or cache-loaded) signatures in
+    this process: a kernel called with argument types its warm_up() did not
+    use compiles again on the pose's path (tests/test_warm.py)."""
+    modules = (*WARMED, filter_kernels)
+    return {f"{m.__name__}.{name}": len(obj.signatures) for m in modules
+            for name, obj in vars(m).items() if isinstance(obj, Dispatcher)}
 
 
 def main() -> None:
     t0 = time.perf_counter()
-    for module in (nislam_kernels, attitude_smoothing, fastorb_kernels, refine_kernels):
-        module.warm_up()
+    warm_up()
     print(f"numba kernels compiled or loaded in {time.perf_counter() - t0:.1f} s")
 
 

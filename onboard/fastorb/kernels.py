@@ -329,4 +329,5 @@ def warm_up() -> None:
     q, t, d = radius_pairs(img, img, 15.0, d64, d64, 64, 640.0, 480.0)
     one_to_one(q, t, d, 2, 2)
     depth_at(np.zeros((8, 8), np.float32), img, 0.2, 6.0, 0.05)
+    depth_at(np.zeros((8, 8), np.float32), img.astype(np.float32), 0.2, 6.0, 0.05)  # LK's pixels
     log.debug("FastORB kernels ready in %.2f s", time.perf_counter() - t0)

@@ -441,6 +441,9 @@ def warm_up() -> None:
     zbuffer_project(f32, np.zeros((4, 4), np.uint8), rays, np.zeros((3, 4), np.float32), 2, 2, True)
     zbuffer_project(f32, np.zeros((4, 4), np.uint8), rays, np.zeros((3, 4), np.float32), 2, 2, True,
                     0.01, 0.0045)
+    # ... and the rays shutter_rays bends for a rolling shutter (writable)
+    zbuffer_project(f32, np.zeros((4, 4), np.uint8), rays.copy(), np.zeros((3, 4), np.float32),
+                    2, 2, True, 0.01, 0.0045)
     depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1)
     depth_difference_sums(f32, f32, f32, f32, f32, f32, 0, 0, 0.1, 0.1, 0.01, 1, 0.1, 0.1,
                           0.0015, 0.001)
