@@ -13,9 +13,14 @@ same load held 20.0 Hz, ATE 3.3 / 12.9 mm).
 Replay accuracy of the same flights with this profile (`nislam sim F
 --seconds 5.5 --width 320 --height 240`, then `nislam replay --config` with
 the grid, perfect AHRS, 2026-11-25): circle 3.1 mm, aggressive 9.4 mm ATE
-RMSE (default grid: 1.2 and 11.7 mm). The bars leave the closed loop about
-twice that (frames the loaded machine delays or drops, the state predicted
-between two 50 Hz reports).
+RMSE (default grid: 1.2 and 11.7 mm). One rendering is one sample of a
+spread: over render seeds 0-7 (2026-11-28) the same replays read circle
+3.0-6.8 mm and aggressive 5.9-25.6 mm, and the closed loop, whose frames
+fall at other instants each run, reads anywhere in it (circle 3.1-7.6 mm).
+So the feed is held to the tracker's own poses (the service scores the same
+frames against the rendered camera's truth: a wrong stamp, frame or axis
+between the tracker and the vehicle shows as a difference), and circle's
+ATE bar sits about 1.5x above the replays' spread.
 """
 
 from __future__ import annotations
@@ -37,7 +42,9 @@ FLIGHT_S, HOVER_S = 5.0, 1.5
 # 20 Hz, not the camera's 30: the loop must keep pace on a shared CI machine
 # whatever else runs; the rate itself is benchmarked (docs/closed_loop.md).
 CAMERA_HZ = 20.0
-ATE_BAR_M = {"circle": 0.007, "aggressive": 0.02}  # ~2x the replay figures above
+# circle: ~1.5x the replays' spread above; aggressive (the loop's flight is
+# gentler than the replay's 5.5 s: 4.0-4.5 mm in four runs) as before
+ATE_BAR_M = {"circle": 0.010, "aggressive": 0.020}
 PROFILE = """[mavlink]
 state_dir = "{state}"
 [nislam]
@@ -106,8 +113,11 @@ def test_the_feed_follows_the_vehicle_it_steers(flight: str, tmp_path: Path) -> 
     assert hz >= 0.8 * CAMERA_HZ
     assert ate <= ATE_BAR_M[flight]
     assert (latency_ms > 0).all() and p50 < 100.0
-    # The service scored the same poses against the rendered camera's truth.
-    assert metrics["ate_rmse_m"] <= ATE_BAR_M[flight]
+    # The service scored the same poses against the rendered camera's truth;
+    # the vehicle's truth at the ODOMETRY's stamps must agree (6 runs:
+    # within 0.2 mm).
+    own = metrics["ate_rmse_m"]
+    assert abs(ate - own) <= 1e-3 + 0.15 * own
     src = metrics["source_stats"]
     assert src["frames_rendered"] >= len(odometry) and src["vehicle_states"] > 40 * FLIGHT_S
     # Moved as flown: the feed spans the flight, not a hover.
