@@ -192,6 +192,22 @@ def test_pure_depth_translation_tz(scene):
         assert abs(r.shift_cells[0]) < 0.1 and abs(r.shift_cells[1]) < 0.1
 
 
+@pytest.mark.parametrize("spacing, stride", [(0.0, 2), (0.01, 1)])
+def test_a_key_and_its_frames_share_one_pixel_step(scene, spacing, stride):
+    """`max_point_spacing_cells`: a key whose points would land further apart
+    than that many cells is made again from its frame's every pixel, and the
+    frames matched against it take the same step (the z-buffer's fill, and so
+    Eq. 18's cells and the peak, then compare like with like). 0.01 cells
+    forces every pixel here; 0 keeps `pixel_stride` (2)."""
+    tracker = NislamTracker(INTR, _params(pixel_stride=2, max_point_spacing_cells=spacing))
+    poses = [(np.eye(3), np.array([0.004 * k, 0.0, 0.006 * k])) for k in range(4)]
+    results = _track_poses(tracker, scene, poses)
+    assert all(r.trusted for r in results)
+    assert tracker._key.stride == stride and tracker._prev.cloud.stride == stride
+    for r, (_, c) in zip(results, poses):
+        assert np.max(np.abs(r.p_W_m - c)) < POS_TOL_M
+
+
 def _key_frame_index(results, k):
     """Index of the frame that is the key frame for frame k (the last frame
     before k flagged new_keyframe)."""

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from onboard.core.camera import CameraIntrinsics
 from onboard.nislam.correlation import KernelCorrelationFilter, find_peak
 from onboard.nislam.projection import Cloud, adaptive_resolution, make_cloud, project
+from onboard.nislam.sampling import stride_for_grid
 
 INTR = CameraIntrinsics(fx=500, fy=500, cx=319.5, cy=239.5, width=640, height=480)
 MIN_D, MAX_D = 0.2, 6.0
@@ -315,3 +316,16 @@ def test_adaptive_resolution_smaller_cells_for_closer_plane():
     for s in (near, far):
         k1 = s * 480 / (2 * 0.05)
         assert abs(k1 - round(k1)) < 1e-9
+
+
+def test_stride_for_grid_samples_about_a_point_per_cell():
+    """9 mm cells, f = 525 px: at 4.5 m every 2nd pixel lands 1.9 cells apart
+    (one cell in four filled), so a key there takes every pixel; at 1 m (0.42
+    cells apart) every 2nd pixel is plenty. 0 (the default) or no depth: the
+    configured step."""
+    assert stride_for_grid(0.009, 4.5, 525.0, 2, 1.0) == 1
+    assert stride_for_grid(0.009, 1.0, 525.0, 2, 1.0) == 2
+    assert stride_for_grid(0.009, 1.0, 525.0, 4, 1.0) == 4
+    assert stride_for_grid(0.009, 2.0, 525.0, 4, 1.0) == 2  # 2 z / f = 0.85 cells; 3 would be 1.3
+    assert stride_for_grid(0.009, 4.5, 525.0, 2, 0.0) == 2
+    assert stride_for_grid(0.009, float("nan"), 525.0, 2, 1.0) == 2

@@ -92,6 +92,7 @@ class Key:
     shifts: list[tuple[float, float, float]] = field(default_factory=list)  # last two (t_s, du, dv)
     coverage: list[float] = field(default_factory=list)  # last two frames' share of the grid covered
     r_geom: np.ndarray | None = None  # the geometry's rotation from the attitude at t_s (Prev's)
+    stride: int = 2  # pixel step of the cloud it was made from; its frames' clouds take the same
 
     @property
     def gray_ref(self) -> np.ndarray:

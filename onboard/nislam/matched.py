@@ -3,6 +3,7 @@ last trusted frame a new key is made from."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,8 @@ class Prev:
     # The geometry's rotation from the attitude at t_s (its depth captured at
     # another instant: tracker._track); None: the same instant.
     r_geom: np.ndarray | None = None
+    # The same frame's cloud at another pixel step (a new key may want one).
+    remake: Callable[[int], Cloud] | None = None
 
     @property
     def p_W_m(self) -> np.ndarray:

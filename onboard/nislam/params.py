@@ -19,6 +19,9 @@ class NislamParams:
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
     pixel_stride: int = 2  # every 2nd pixel: ~1 point per cell at 1.5 m, a quarter of the work
+    # ... but a key (and its frames) takes a finer step where its points would
+    # land further apart than this many of its cells (projection.stride_for_grid); 0 = never
+    max_point_spacing_cells: float = 0.0
     kernel_sigma: float = 0.2
     lam: float = 0.1
     label_sigma_cells: float = 1.0

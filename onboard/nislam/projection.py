@@ -27,6 +27,7 @@ class Cloud:
     bgr: np.ndarray  # (H', W', 3) uint8
     gray8: np.ndarray  # (H', W') uint8
     rays: np.ndarray  # (H', W', 3) float32
+    stride: int = 1  # the pixel step it was sampled at
 
     def __len__(self) -> int:
         return int(np.count_nonzero(self.depth_m))
@@ -87,7 +88,7 @@ def make_cloud(
         k = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
         hmat = k @ r_colour_depth @ np.linalg.inv(k)
         gray8 = warped_gray(bgr, stride, hmat)
-    return Cloud(depth, bgr[::stride, ::stride], gray8, _rays(intr, stride))
+    return Cloud(depth, bgr[::stride, ::stride], gray8, _rays(intr, stride), stride)
 
 
 def warped_gray(bgr: np.ndarray, stride: int, hmat: np.ndarray) -> np.ndarray:

@@ -41,4 +41,4 @@ def rolling_shutter_cloud(
         np.float32)
     w = np.asarray(omega_rad_s, np.float32)
     rays, depth = shutter_rays(cloud.rays, cloud.depth_m, tau, w[0], w[1], w[2])
-    return Cloud(depth, cloud.bgr, cloud.gray8, rays)
+    return Cloud(depth, cloud.bgr, cloud.gray8, rays, cloud.stride)

@@ -21,7 +21,9 @@ pose (the next `track()` does them first if it was not called).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -42,11 +44,10 @@ from onboard.nislam.projection import (
     AxonometricImage,
     Cloud,
     adaptive_resolution,
-    make_cloud,
     project,
 )
 from onboard.nislam.results import lost_result, quality_from_psr, restart_result
-from onboard.nislam.shutter import rolling_shutter_cloud
+from onboard.nislam.sampling import frame_cloud, key_cloud
 
 log = logging.getLogger(__name__)
 
@@ -134,22 +135,16 @@ class NislamTracker:
                 # its key keep the geometry's rotation from it (r_geom), so a
                 # key's attitude looked up again is its projection's.
                 r_g, r_cd = r_d, r_cur.T @ r_d
-        cloud = make_cloud(
-            frame.bgr, frame.depth_m, self.intr, self.p.min_depth_m, self.p.max_depth_m,
-            self.p.pixel_stride, r_cd,
-        )
-        if self.p.rolling_shutter_readout_s != 0.0:
-            # Rows exposed one after another: each brought to the middle row's
-            # instant, the one the attitude is looked up at (nislam/shutter.py).
-            w = body_rate(attitude, t_att, self.p.rolling_shutter_rate_half_window_s)
-            if w is not None:
-                cloud = rolling_shutter_cloud(cloud, w, self.p.rolling_shutter_readout_s,
-                                              self.intr.height, self.p.pixel_stride)
+        # The key's pixel step: key and frame sampled alike (Key.stride).
+        stride = self.p.pixel_stride if self._key is None or self._lost else self._key.stride
+        remake = functools.partial(frame_cloud, frame, r_cd=r_cd, intr=self.intr, p=self.p,
+                                   attitude=attitude, t_att=t_att)
+        cloud = remake(stride)
         min_points = self.p.min_valid_fraction * self.shape[0] * self.shape[1]
         if len(cloud) < min_points:
             return self._lost_result(frame.t_s, "too few depth pixels")
         if self._key is None or self._lost or self._coasted_too_long(frame.t_s):
-            return self._restart(frame.t_s, r_cur, cloud, r_g, r_cd)
+            return self._restart(frame.t_s, r_cur, cloud, r_g, r_cd, remake)
         key = self._key
         finished: list[KeyframeCloud] = []
         outcome = self._match(key, cloud, frame.t_s, r_g, attitude, t_att)
@@ -182,7 +177,7 @@ class NislamTracker:
         peak = outcome.peak
         before = self._prev
         self._prev = Prev(frame.t_s, cloud, r_g, key, outcome.p_W_m - key.p_W_m,
-                           outcome.pose_var[:3], r_cd)
+                           outcome.pose_var[:3], r_cd, remake)
         self._last_trusted_p = outcome.p_W_m
         new_key = peak.psr < self.p.psr_keyframe  # Eq. 17 (no kept key matched firmly)
         leaving = not new_key and key.leaving_grid(self.p.min_valid_fraction)
@@ -396,7 +391,7 @@ class NislamTracker:
         self._next_key_id += 1
         cand, o = found
         self._prev = Prev(prev.t_s, prev.cloud, prev.R_W_C, cand, o.p_W_m - cand.p_W_m,
-                           o.pose_var[:3], prev.r_geom)
+                           o.pose_var[:3], prev.r_geom, prev.remake)
         self._reused_after_pose = cand.keyframe_id
 
     def _rate_difference(
@@ -416,7 +411,7 @@ class NislamTracker:
     # ----------------------------------------------------------- key frames
     def _restart(
         self, t_s: float, r_cur: np.ndarray, cloud: Cloud, r_g: np.ndarray,
-        r_cd: np.ndarray | None,
+        r_cd: np.ndarray | None, remake: Callable[[int], Cloud] | None = None,
     ) -> TrackResult:
         """First key, or a new key after a lost spell placed at the last trusted
         position in the same world frame (the reset counter marks the jump).
@@ -426,7 +421,7 @@ class NislamTracker:
         if self._key is not None:
             self._reset_counter += 1
         self._lost = False
-        self._prev = Prev(t_s, cloud, r_g, None, p_W, np.zeros(3), r_cd)
+        self._prev = Prev(t_s, cloud, r_g, None, p_W, np.zeros(3), r_cd, remake)
         finished = self._new_key_from(self._prev)
         self._last_trusted_p = p_W
         return restart_result(t_s, p_W, r_cur, self._key, self._reset_counter,
@@ -444,14 +439,15 @@ class NislamTracker:
             prev.cloud, p.grid_width, p.adaptive_mu, p.max_distance_m, p.len_hist, p.hist_sample,
             self.intr.height / self.intr.width,
         )
+        cloud = key_cloud(prev.cloud, prev.remake, res, self.intr.fx, p)
         slot = self._store.take()
         # hand_over is False only for the Eq. 17 key, made after the pose already.
         colour_later = hand_over
-        img = slot.hold(project(prev.cloud, np.eye(3), self.shape, res, with_colour=not colour_later,
+        img = slot.hold(project(cloud, np.eye(3), self.shape, res, with_colour=not colour_later,
                                 front=self._front))
         if colour_later:  # the same projection's colour: a third of the key's making
             self._deferred.add(slot.bgr, lambda: np.copyto(slot.bgr, project(
-                prev.cloud, np.eye(3), self.shape, res, with_colour=True).bgr))
+                cloud, np.eye(3), self.shape, res, with_colour=True).bgr))
         filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
                                        slot.spectra)
         filt.train(whiten(img.gray, img.mask))
@@ -466,6 +462,7 @@ class NislamTracker:
             slot=slot,
             layers=layers,
             r_geom=prev.r_geom,
+            stride=cloud.stride,
         )
         self._next_key_id += 1
         if self.p.map_keyframes > 0:
