@@ -28,6 +28,7 @@ import dataclasses
 import pickle
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -51,8 +52,16 @@ def _overrides(pairs: list[str]) -> dict[str, str]:
     return dict(p.split("=", 1) for p in pairs)
 
 
+def _literal(text: str):
+    """A TOML literal (1.0, true, 2) as its value; anything else as the string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
 def record(seq_dir: str, out: str, sets: list[str]) -> None:
-    cfg = load_config(None, _overrides(sets))
+    cfg = load_config(None, {k: _literal(v) for k, v in _overrides(sets).items()})
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
     attitude, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s)
     cfg = with_stated_ahrs(cfg, seq_dir)
