@@ -20,7 +20,7 @@ class NislamParams:
     max_depth_m: float = 6.0
     pixel_stride: int = 2  # every 2nd pixel: ~1 point per cell at 1.5 m, a quarter of the work
     # ... but a key (and its frames) takes a finer step where its points would
-    # land further apart than this many of its cells (projection.stride_for_grid); 0 = never
+    # land further apart than this many of its cells (sampling.stride_for_grid); 0 = never
     max_point_spacing_cells: float = 0.0
     kernel_sigma: float = 0.2
     lam: float = 0.1
