@@ -288,7 +288,8 @@ def main() -> None:
         return
     fusion_sets = {k.removeprefix("fusion."): v for k, v in _overrides(a.set).items()}
     base = FusionParams()
-    params = dataclasses.replace(base, **{k: type(getattr(base, k))(v) for k, v in fusion_sets.items()})
+    params = dataclasses.replace(
+        base, **{k: type(getattr(base, k))(_literal(v)) for k, v in fusion_sets.items()})
     for path in a.caches:
         with open(path, "rb") as fh:
             cache = pickle.load(fh)
