@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.core.attitude_smoothing import DEFAULT_HALF_S, local_fit
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, DEFAULT_MAX_HALF_S, smoothed
 from onboard.core.rotations import quat_slerp, quat_to_matrix
 from onboard.core.trajectory import Trajectory
 from sim_replay.tum import Sequence
@@ -39,11 +39,15 @@ class AttitudeSeries:
     """
 
     def __init__(self, trajectory: Trajectory, max_gap_s: float = DEFAULT_MAX_GAP_S,
-                 smoothing_s: float = DEFAULT_HALF_S) -> None:
-        """`smoothing_s`: as onboard.core.attitude.AttitudeBuffer's."""
+                 smoothing_s: float = DEFAULT_HALF_S, smoothing_max_s: float = 0.0,
+                 noise_sd_deg: float = 0.0) -> None:
+        """`smoothing_s`, `smoothing_max_s`, `noise_sd_deg`: as
+        onboard.core.attitude.AttitudeBuffer's."""
         self.trajectory = trajectory
         self.max_gap_s = float(max_gap_s)
         self.smoothing_s = float(smoothing_s)
+        self._widest_s = max(self.smoothing_s, float(smoothing_max_s))
+        self._noise_rad = math.radians(noise_sd_deg)
         self._t_s: list[float] = [float(t) for t in trajectory.t_s]
         self._q_xyzw: list[tuple[float, float, float, float]] = [
             (float(q[0]), float(q[1]), float(q[2]), float(q[3])) for q in trajectory.q_xyzw
@@ -67,9 +71,10 @@ class AttitudeSeries:
         r = quat_to_matrix(q)
         if self.smoothing_s <= 0.0:
             return r
-        i0 = bisect.bisect_left(self._t_s, t_s - self.smoothing_s)
-        i1 = bisect.bisect_right(self._t_s, t_s + self.smoothing_s)
-        delta = local_fit(t_s, self._t_s[i0:i1], self._q_arr[i0:i1], q)
+        i0 = bisect.bisect_left(self._t_s, t_s - self._widest_s)
+        i1 = bisect.bisect_right(self._t_s, t_s + self._widest_s)
+        delta = smoothed(t_s, self._t_s[i0:i1], self._q_arr[i0:i1], q, self.smoothing_s,
+                         self._widest_s, self._noise_rad)
         return r if delta is None else r @ delta
 
     def _quat_at(self, t_s: float) -> tuple[float, float, float, float] | None:
@@ -193,7 +198,7 @@ def perturb_samples(t_s, q_true_xyzw, model: AttitudeErrorModel) -> np.ndarray:
 
 def attitude_for_replay(
     seq: Sequence, model: AttitudeErrorModel, max_gap_s: float = DEFAULT_MAX_GAP_S,
-    smoothing_s: float = DEFAULT_HALF_S,
+    smoothing_s: float = DEFAULT_HALF_S, smoothing_max_s: float = DEFAULT_MAX_HALF_S,
 ) -> tuple[AttitudeSeries, str]:
     """The attitude a replay feeds the tracker, and a label saying where it came from.
 
@@ -201,6 +206,10 @@ def attitude_for_replay(
     the camera mount) when present; else from ground truth sampled once per
     frame time (the camera's own orientation, mount = identity, as the NI-SLAM
     authors did on TUM). The error model is applied in the body frame.
+    Its white noise is what the recording states (a simulated flight's
+    sim.json; ground truth: none) and what the model adds, in quadrature:
+    the local fit widens its window up to `smoothing_max_s` against it
+    (onboard.core.attitude_smoothing.adaptive_fit).
     """
     if seq.attitude is not None:
         measured = apply_error_model(seq.attitude, seq.attitude.t_s, model, max_gap_s)
@@ -222,7 +231,9 @@ def attitude_for_replay(
         )
     if len(measured) == 0:
         raise NislamError(f"{seq.path}: {source} gives no attitude sample at any frame time")
-    return AttitudeSeries(measured, max_gap_s, smoothing_s), f"{source}; {model.describe()}"
+    noise_deg = math.hypot(stated_noise_deg(seq.path) or 0.0, model.noise_deg)
+    return (AttitudeSeries(measured, max_gap_s, smoothing_s, smoothing_max_s, noise_deg),
+            f"{source}; {model.describe()}")
 
 
 def stated_noise_deg(seq_dir: Path | str) -> float | None:

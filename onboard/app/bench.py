@@ -80,7 +80,8 @@ def bench(
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
     attitude, _label = attitude_for_replay(
-        seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s, cfg.ahrs.smoothing_s
+        seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s, cfg.ahrs.smoothing_s,
+        cfg.ahrs.smoothing_max_s
     )
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
     frames, stages = read_timed(seq, max_frames)

@@ -325,6 +325,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "ahrs.max_age_s": DURATION,
     "ahrs.max_gap_s": DURATION,
     "ahrs.smoothing_s": Range(0.0, 0.1),  # wider: the fit would flatten the vehicle's own motion
+    "ahrs.smoothing_max_s": Range(0.0, 0.2),  # the ICI rule stops where the motion bends; a cap on the work
     "myahrs.port": Check(lambda v: None if v.strip() else "must not be empty"),
     "myahrs.baud": BAUD,
     "myahrs.divider": Range(1, 100),

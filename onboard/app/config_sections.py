@@ -52,6 +52,7 @@ class AhrsConfig:
     max_age_s: float = 0.25  # an AHRS this far behind a frame is not waited for (silent)
     max_gap_s: float = 0.1  # no interpolation across a longer gap between samples
     smoothing_s: float = 0.04  # attitude at a time: quadratic fit over +- this (core/attitude_smoothing.py)
+    smoothing_max_s: float = 0.1  # ... widened up to +- this as far as the data allow, given the AHRS's noise
 
 
 @dataclass(frozen=True)

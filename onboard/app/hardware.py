@@ -39,7 +39,8 @@ def make_attitude_buffer(cfg: Config, check_stamps: bool = True) -> AttitudeBuff
              "oak_imu": "OAK IMU"}.get(a.source, "AHRS")
     return AttitudeBuffer(R_B_C, a.buffer_samples, a.max_gap_s,
                           now_ns=time.monotonic_ns if check_stamps else None, label=label,
-                          smoothing_s=a.smoothing_s)
+                          smoothing_s=a.smoothing_s, smoothing_max_s=a.smoothing_max_s,
+                          noise_sd_deg=cfg.nislam.attitude_sd_deg)
 
 
 def oak_settings(cfg: Config, imu: bool) -> OakSettings:

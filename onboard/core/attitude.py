@@ -33,6 +33,7 @@ latency and jitter: that bounds the attitude error a jump can cause.
 from __future__ import annotations
 
 import bisect
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.device_state import DeviceState, State
-from onboard.core.attitude_smoothing import DEFAULT_HALF_S, local_fit
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, smoothed
 from onboard.core.rotations import (
     Quat,
     quat_conj,
@@ -104,15 +105,22 @@ class AttitudeBuffer:
         jump_s: float = 2.0,
         label: str = "AHRS",
         smoothing_s: float = DEFAULT_HALF_S,
+        smoothing_max_s: float = 0.0,
+        noise_sd_deg: float = 0.0,
     ) -> None:
         """`smoothing_s`: half window of the local fit rotation_at makes where
-        the samples are dense (onboard.core.attitude_smoothing); 0: the slerp."""
+        the samples are dense (onboard.core.attitude_smoothing); 0: the slerp.
+        `noise_sd_deg`: the AHRS's white noise per sample and axis; with it
+        the window widens up to +-`smoothing_max_s` as far as the data allow
+        (attitude_smoothing.adaptive_fit)."""
         if capacity < 2:
             raise ValueError("attitude buffer capacity must be >= 2")
         self.R_B_C = np.eye(3) if R_B_C is None else np.asarray(R_B_C, dtype=np.float64)
         self.capacity = int(capacity)
         self.max_gap_s = float(max_gap_s)
         self.smoothing_s = float(smoothing_s)
+        self._widest_s = max(self.smoothing_s, float(smoothing_max_s))
+        self._noise_rad = math.radians(noise_sd_deg)
         self._lock = threading.Lock()
         self._t_s: list[float] = []
         self._samples: list[AttitudeSample] = []
@@ -164,8 +172,8 @@ class AttitudeBuffer:
             return None
         r_w_b = quat_to_matrix(q)
         if self.smoothing_s > 0.0:
-            ts, qs = self._body_quats_between(t_s - self.smoothing_s, t_s + self.smoothing_s)
-            delta = local_fit(t_s, ts, qs, q)
+            ts, qs = self._body_quats_between(t_s - self._widest_s, t_s + self._widest_s)
+            delta = smoothed(t_s, ts, qs, q, self.smoothing_s, self._widest_s, self._noise_rad)
             if delta is not None:  # fitted in the body's tangent space, then the mount
                 r_w_b = r_w_b @ delta
         return r_w_b @ self.R_B_C
