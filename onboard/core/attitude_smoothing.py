@@ -146,7 +146,6 @@ def warm_up() -> None:
     fitted_delta(np.linspace(-0.02, 0.02, 5), q[0], q)
 
 
-
 def adaptive_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, w_slerp: float,
                  half_s: float, max_half_s: float, noise_sd_rad: float) -> np.ndarray | None:
     """`local_fit` over the widest window up to +-`max_half_s` that the data
