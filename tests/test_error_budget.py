@@ -39,10 +39,12 @@ def test_exact_inputs_stay_within_the_estimator_floor(exact: dict) -> None:
 
 def test_attitude_noise_leaks_in_proportion_to_depth(flight: Path, exact: dict) -> None:
     """0.1 deg of white attitude noise (a myAHRS+-class sensor) moves the
-    content by the angle times the depth: 9.95 mm per frame measured; bound 12 mm,
-    and at least three times the exact-input floor."""
+    content by the angle times the depth: 9.95 mm per frame with the fixed
+    +-40 ms fit, 2.83 mm now that the window widens against the stated noise
+    (attitude_smoothing.adaptive_fit; exact inputs 0.96 mm). Bound 4.5 mm, and
+    at least twice the exact-input floor."""
     noisy = _score(flight, "attitude noise 0.1 deg")
-    assert 3.0 * exact["rpe1"] <= noisy["rpe1"] <= 0.012, noisy["rpe1"]
+    assert 2.0 * exact["rpe1"] <= noisy["rpe1"] <= 0.0045, noisy["rpe1"]
 
 
 
