@@ -144,6 +144,7 @@ def warm_up() -> None:
     """Compile (or load from numba's disk cache) before the first frame."""
     q = np.array([[0.0, 0.0, 0.0, 1.0]] * 5)
     fitted_delta(np.linspace(-0.02, 0.02, 5), q[0], q)
+    adaptive_fit(0.0, [-0.02, -0.01, 0.0, 0.01, 0.02], q, q[0], 0.0, 0.01, 0.02, 1e-3)
 
 
 def adaptive_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, w_slerp: float,
@@ -163,25 +164,86 @@ def adaptive_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, w_slerp: 
     bends the wider fit away, the intervals part. The narrowest estimate is
     the fit over +-half_s, or the slerp where that is too sparse (an attitude
     sampled at the frame times). None: the slerp stands."""
-    tau = np.asarray(ts, dtype=np.float64) - t_s
-    qa = np.asarray(qs, dtype=np.float64)
-    q0 = np.asarray(q_slerp, dtype=np.float64)
-    best, lo, hi = None, None, None
-    for k, h in enumerate(_ladder(half_s, max_half_s)):
-        sel = np.abs(tau) <= h
-        if _dense(tau[sel]):
-            d, lev = fitted(tau[sel], q0, qa[sel])
-            sd = noise_sd_rad * math.sqrt(max(lev, 0.0))
-        elif k == 0:  # the slerp between the two neighbours
-            d, sd = np.zeros(3), noise_sd_rad * math.hypot(1.0 - w_slerp, w_slerp)
+    halves = np.asarray(_ladder(half_s, max_half_s), dtype=np.float64)
+    d, found = _ici()(np.asarray(ts, dtype=np.float64) - t_s, np.asarray(q_slerp, dtype=np.float64),
+                      np.ascontiguousarray(qs, dtype=np.float64), halves, noise_sd_rad, ICI_GAMMA,
+                      w_slerp)
+    return rotvec_matrix(d) if found else None
+
+
+def _ici_py(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray, halves: np.ndarray,
+            noise_sd_rad: float, gamma: float, w_slerp: float) -> tuple[np.ndarray, bool]:
+    """adaptive_fit's windows in one pass (numba): the samples' rotation
+    vectors from q0 once (as _fitted_py), then per window the normal
+    equations, its value at 0 and its interval. (the chosen value, whether
+    a fit was chosen at all; the slerp is (0, False))."""
+    n = len(tau_s)
+    x0, y0, z0, w0 = -q0[0], -q0[1], -q0[2], q0[3]
+    v = np.empty((n, 3))
+    for i in range(n):
+        x, y, z, w = qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]
+        rx = w0 * x + x0 * w + y0 * z - z0 * y
+        ry = w0 * y - x0 * z + y0 * w + z0 * x
+        rz = w0 * z + x0 * y - y0 * x + z0 * w
+        rw = w0 * w - x0 * x - y0 * y - z0 * z
+        if rw < 0.0:
+            rx, ry, rz, rw = -rx, -ry, -rz, -rw
+        sn = np.sqrt(rx * rx + ry * ry + rz * rz)
+        k = 2.0 * np.arctan2(sn, rw) / sn if sn > 1e-12 else 2.0
+        v[i, 0], v[i, 1], v[i, 2] = rx * k, ry * k, rz * k
+    e0 = np.zeros(3)
+    e0[0] = 1.0
+    best = np.zeros(3)
+    found = False
+    lo = np.full(3, -np.inf)
+    hi = np.full(3, np.inf)
+    for j in range(len(halves)):
+        ata = np.zeros((3, 3))
+        atv = np.zeros((3, 3))
+        count, before, after = 0, 0, 0
+        for i in range(n):
+            t = tau_s[i]
+            if abs(t) > halves[j]:
+                continue
+            count += 1
+            if t < 0.0:
+                before += 1
+            elif t > 0.0:
+                after += 1
+            basis = (1.0, t, t * t)
+            for a in range(3):
+                for b in range(3):
+                    ata[a, b] += basis[a] * basis[b]
+                    atv[a, b] += basis[a] * v[i, b]
+        fit = count >= MIN_SAMPLES and before >= MIN_EACH_SIDE and after >= MIN_EACH_SIDE
+        if fit:
+            d = np.linalg.solve(ata, atv)[0]
+            sd = noise_sd_rad * np.sqrt(max(np.linalg.solve(ata, e0)[0], 0.0))
+        elif j == 0:  # the slerp between the two neighbours
+            d = np.zeros(3)
+            sd = noise_sd_rad * np.sqrt((1.0 - w_slerp) ** 2 + w_slerp ** 2)
         else:
             continue
-        lo = d - ICI_GAMMA * sd if lo is None else np.maximum(lo, d - ICI_GAMMA * sd)
-        hi = d + ICI_GAMMA * sd if hi is None else np.minimum(hi, d + ICI_GAMMA * sd)
-        if np.any(lo > hi):
+        parted = False
+        for a in range(3):
+            lo[a] = max(lo[a], d[a] - gamma * sd)
+            hi[a] = min(hi[a], d[a] + gamma * sd)
+            parted = parted or lo[a] > hi[a]
+        if parted:
             break
-        best = d
-    return None if best is None or not best.any() else rotvec_matrix(best)
+        best, found = d, fit
+    return best, found
+
+
+_ici_compiled = None
+
+
+def _ici():
+    global _ici_compiled
+    if _ici_compiled is None:
+        from numba import njit
+        _ici_compiled = njit(cache=True, nogil=True)(_ici_py)
+    return _ici_compiled
 
 
 ICI_GAMMA = 2.0  # intervals of +-2 sd: the usual choice (Katkovnik: 1.5-3)
@@ -196,9 +258,3 @@ def _ladder(half_s: float, max_half_s: float) -> list[float]:
         halves.append(max_half_s)
     return halves
 
-
-def _dense(tau_s: np.ndarray) -> bool:
-    """Enough samples around the frame to average (module doc)."""
-    n_before = int(np.count_nonzero(tau_s < 0.0))
-    n_after = int(np.count_nonzero(tau_s > 0.0))
-    return len(tau_s) >= MIN_SAMPLES and n_before >= MIN_EACH_SIDE and n_after >= MIN_EACH_SIDE
