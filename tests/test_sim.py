@@ -160,3 +160,28 @@ def test_sim_with_faults_writes_the_damaged_flight(tmp_path):
     seq = open_sequence(out)
     assert len(list(seq)) == 44 and seq.skipped.empty_depth_frames == 1
     assert seq.skipped.attitude_nan_samples == 2
+
+
+def test_the_replay_averages_the_attitude_noise_the_flight_states(tmp_path):
+    """A flight whose sim.json states 0.3 deg of white AHRS noise: the replay's
+    attitude widens its fit against that noise (attitude_smoothing.adaptive_fit)
+    and lands closer to the true camera rotation at the frames than the fixed
+    +-40 ms fit; a flight that states no noise gets the fixed fit, bit for bit."""
+    seq = open_sequence(_sim(tmp_path / "noisy", "circle", seconds=4.0, attitude_noise_deg=0.3,
+                             width=64, height=48, camera_hz=10.0, seed=3))
+    r_gt = Rotation.from_quat(seq.groundtruth.q_xyzw)
+    frames = seq.frame_times_s[5:-5]  # a full window on both sides
+
+    def err_deg(smoothing_max_s: float) -> float:
+        series, _ = attitude_for_replay(seq, AttitudeErrorModel(), smoothing_max_s=smoothing_max_s)
+        got = Rotation.from_matrix(np.stack([series.rotation_at(t) for t in frames]))
+        return float(np.degrees(np.sqrt(np.mean((r_gt[5:-5].inv() * got).magnitude() ** 2))))
+
+    widened, fixed = err_deg(0.1), err_deg(0.04)
+    assert widened < 0.8 * fixed, (widened, fixed)
+
+    exact = open_sequence(_sim(tmp_path / "exact", "circle", seconds=1.0, width=64, height=48,
+                               camera_hz=10.0, seed=3))
+    a, _ = attitude_for_replay(exact, AttitudeErrorModel())
+    b, _ = attitude_for_replay(exact, AttitudeErrorModel(), smoothing_max_s=0.04)
+    assert all(np.array_equal(a.rotation_at(t), b.rotation_at(t)) for t in exact.frame_times_s[2:-2])
