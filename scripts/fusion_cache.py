@@ -64,7 +64,8 @@ def record(seq_dir: str, out: str, sets: list[str]) -> None:
     cfg = load_config(None, {k: _literal(v) for k, v in _overrides(sets).items()})
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
     attitude, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s,
-                                      cfg.ahrs.smoothing_s, cfg.ahrs.smoothing_max_s)
+                                      cfg.ahrs.smoothing_s, cfg.ahrs.smoothing_max_s,
+                                      cfg.nislam.attitude_sd_deg)
     cfg = with_stated_ahrs(cfg, seq_dir)
     frames = list(seq.frames())
     results: dict[str, list] = {}

@@ -199,6 +199,7 @@ def perturb_samples(t_s, q_true_xyzw, model: AttitudeErrorModel) -> np.ndarray:
 def attitude_for_replay(
     seq: Sequence, model: AttitudeErrorModel, max_gap_s: float = DEFAULT_MAX_GAP_S,
     smoothing_s: float = DEFAULT_HALF_S, smoothing_max_s: float = DEFAULT_MAX_HALF_S,
+    ahrs_noise_deg: float = 0.0,
 ) -> tuple[AttitudeSeries, str]:
     """The attitude a replay feeds the tracker, and a label saying where it came from.
 
@@ -206,9 +207,9 @@ def attitude_for_replay(
     the camera mount) when present; else from ground truth sampled once per
     frame time (the camera's own orientation, mount = identity, as the NI-SLAM
     authors did on TUM). The error model is applied in the body frame.
-    Its white noise is what the recording states (a simulated flight's
-    sim.json; ground truth: none) and what the model adds, in quadrature:
-    the local fit widens its window up to `smoothing_max_s` against it
+    Its white noise (`recorded_noise_deg`, with `ahrs_noise_deg` for a real
+    AHRS's recording) and what the model adds, in quadrature: the local fit
+    widens its window up to `smoothing_max_s` against it
     (onboard.core.attitude_smoothing.adaptive_fit).
     """
     if seq.attitude is not None:
@@ -231,7 +232,7 @@ def attitude_for_replay(
         )
     if len(measured) == 0:
         raise NislamError(f"{seq.path}: {source} gives no attitude sample at any frame time")
-    noise_deg = math.hypot(stated_noise_deg(seq.path) or 0.0, model.noise_deg)
+    noise_deg = math.hypot(recorded_noise_deg(seq, ahrs_noise_deg), model.noise_deg)
     return (AttitudeSeries(measured, max_gap_s, smoothing_s, smoothing_max_s, noise_deg),
             f"{source}; {model.describe()}")
 
@@ -251,3 +252,14 @@ def stated_noise_deg(seq_dir: Path | str) -> float | None:
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return noise if math.isfinite(noise) and noise >= 0.0 else None
+
+
+def recorded_noise_deg(seq: Sequence, ahrs_noise_deg: float) -> float:
+    """The white noise per axis [deg] of the attitude a replay of `seq` plays:
+    what a simulated flight states (sim.json); for a real AHRS's recording
+    (attitude.txt) the configured figure, `ahrs_noise_deg` (`[nislam]
+    attitude_sd_deg`, what the live buffer takes); ground truth: none."""
+    stated = stated_noise_deg(seq.path)
+    if stated is not None:
+        return stated
+    return ahrs_noise_deg if seq.attitude is not None else 0.0

@@ -40,7 +40,7 @@ from onboard.core.camera import CameraModel
 from onboard.core.messages import RgbdFrame
 from onboard.core.rotations import quat_to_matrix
 from onboard.core.sources import DriverThread, FrameSlot
-from sim_replay.attitude import stated_noise_deg
+from sim_replay.attitude import recorded_noise_deg
 from sim_replay.stamps import DEFAULT_WINDOW_S
 from sim_replay.tum import Sequence, open_sequence
 
@@ -348,6 +348,7 @@ def open_replay(
     loop_s: float | None = None,
     attitude_smoothing_s: float = DEFAULT_HALF_S,
     attitude_smoothing_max_s: float = DEFAULT_MAX_HALF_S,
+    ahrs_noise_deg: float = 0.0,
 ) -> Replay:
     """Replay drivers for a TUM-layout sequence; attitude within PREROLL_S
     before the first frame to TAIL_S after the last is played. With `loop_s`:
@@ -371,10 +372,9 @@ def open_replay(
         R_B_C = np.eye(3)
     else:
         traj, label, R_B_C = None, "none", quat_to_matrix(tuple(seq.camera.q_B_C_xyzw))
-    # The AHRS's white noise as the recording states it (ground truth: none).
     buffer = AttitudeBuffer(R_B_C, buffer_capacity, max_gap_s, smoothing_s=attitude_smoothing_s,
                             smoothing_max_s=attitude_smoothing_max_s,
-                            noise_sd_deg=stated_noise_deg(seq.path) or 0.0)
+                            noise_sd_deg=recorded_noise_deg(seq, ahrs_noise_deg))
     attitude = None
     if traj is not None:
         keep = (traj.t_s >= t_first - PREROLL_S) & (traj.t_s <= t_last + TAIL_S)

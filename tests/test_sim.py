@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
 from onboard.core.rotations import mount_rotation
-from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
+from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay, recorded_noise_deg
 from sim_replay.flights import Flight, scenario
 from sim_replay.render import Renderer
 from sim_replay.scene import make_scene
@@ -182,6 +182,19 @@ def test_the_replay_averages_the_attitude_noise_the_flight_states(tmp_path):
 
     exact = open_sequence(_sim(tmp_path / "exact", "circle", seconds=1.0, width=64, height=48,
                                camera_hz=10.0, seed=3))
-    a, _ = attitude_for_replay(exact, AttitudeErrorModel())
+    a, _ = attitude_for_replay(exact, AttitudeErrorModel(), ahrs_noise_deg=0.1)
     b, _ = attitude_for_replay(exact, AttitudeErrorModel(), smoothing_max_s=0.04)
     assert all(np.array_equal(a.rotation_at(t), b.rotation_at(t)) for t in exact.frame_times_s[2:-2])
+
+
+def test_the_attitude_noise_a_replay_assumes(tmp_path):
+    """sim_replay.attitude.recorded_noise_deg: a simulated flight's own figure;
+    a real AHRS's recording (attitude.txt, no sim.json) the configured one, as
+    the live buffer takes it; ground truth (no attitude.txt) none."""
+    flight = _sim(tmp_path / "f", "hover", seconds=0.5, attitude_noise_deg=0.2, width=64,
+                  height=48, camera_hz=10.0)
+    assert recorded_noise_deg(open_sequence(flight), 0.1) == pytest.approx(0.2)
+    (flight / "sim.json").unlink()
+    assert recorded_noise_deg(open_sequence(flight), 0.1) == 0.1
+    (flight / "attitude.txt").unlink()
+    assert recorded_noise_deg(open_sequence(flight), 0.1) == 0.0

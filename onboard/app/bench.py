@@ -81,7 +81,7 @@ def bench(
                         cfg.replay.stamp_window_s)
     attitude, _label = attitude_for_replay(
         seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s, cfg.ahrs.smoothing_s,
-        cfg.ahrs.smoothing_max_s
+        cfg.ahrs.smoothing_max_s, cfg.nislam.attitude_sd_deg
     )
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
     frames, stages = read_timed(seq, max_frames)

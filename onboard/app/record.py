@@ -244,7 +244,9 @@ def record(
         from sim_replay.sources import open_replay
 
         rp = open_replay(replay_dir, speed=replay_speed, buffer_capacity=cfg.ahrs.buffer_samples,
-                         max_gap_s=cfg.ahrs.max_gap_s,
+                         max_gap_s=cfg.ahrs.max_gap_s, attitude_smoothing_s=cfg.ahrs.smoothing_s,
+                         attitude_smoothing_max_s=cfg.ahrs.smoothing_max_s,
+                         ahrs_noise_deg=cfg.nislam.attitude_sd_deg,
                          assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort)
         camera, buffer, sources = rp.camera, rp.buffer, rp
         result = RecordResult(out_dir, f"replay of {Path(replay_dir)}", rp.attitude_label)

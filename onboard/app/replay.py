@@ -175,7 +175,7 @@ def replay(
                         cfg.replay.stamp_window_s)
     attitude, attitude_label = attitude_for_replay(
         seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s, cfg.ahrs.smoothing_s,
-        cfg.ahrs.smoothing_max_s)
+        cfg.ahrs.smoothing_max_s, cfg.nislam.attitude_sd_deg)
     cfg = with_stated_ahrs(cfg, seq.path)
     tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
     _make_out_dir(out_dir)  # before tracking: a bad --out should not cost a whole run

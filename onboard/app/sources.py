@@ -74,7 +74,8 @@ def replay_sources(cfg: Config, seq_dir: Path | str, loop_s: float | None = None
                      assoc_max_dt_s=cfg.replay.assoc_max_dt_s, undistort=cfg.replay.undistort,
                      stamp_window_s=cfg.replay.stamp_window_s,
                      loop_s=loop_s, attitude_smoothing_s=cfg.ahrs.smoothing_s,
-                     attitude_smoothing_max_s=cfg.ahrs.smoothing_max_s)
+                     attitude_smoothing_max_s=cfg.ahrs.smoothing_max_s,
+                     ahrs_noise_deg=cfg.nislam.attitude_sd_deg)
     passes = rp.passes
     q = matrix_to_quat(rp.buffer.R_B_C)
     mav = dataclasses.replace(cfg.mavlink, mount="custom", mount_q_B_C_xyzw=tuple(q))

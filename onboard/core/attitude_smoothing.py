@@ -22,8 +22,9 @@ slerp between the two neighbours. Live, the samples after the frame that
 have arrived when it is tracked are used (the fit then leans on the earlier
 side); nothing waits for more.
 
-With the AHRS's white noise stated (`[nislam] attitude_sd_deg` live; a
-replay: what its recording states, plus what it adds) the window widens
+With the AHRS's white noise stated (`[nislam] attitude_sd_deg` live and
+for a real AHRS's recording; a simulated flight's own figure; ground truth
+none; plus what a replay adds: sim_replay.attitude.recorded_noise_deg) the window widens
 beyond +-`half_s`, up to `[ahrs] smoothing_max_s`, as far as the fits of
 the wider windows agree with the narrower ones within their noise
 (`adaptive_fit`, the ICI rule): a noisy AHRS on a smooth flight is averaged
