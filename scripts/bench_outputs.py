@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO / "tests"))  # the peer helpers live with the tests
 from fake_results import track_result  # noqa: E402
 from subproc import JsonLinesProcess, free_port, python_script  # noqa: E402
 
-from onboard.app.bench import attitude_error_model, pin_one_core
+from onboard.app.bench import pin_one_core, replay_attitude
 from onboard.app.config import Config
 from onboard.fusion.registry import make_tracker
 from onboard.outputs.group import NullOutput, Output, OutputGroup
@@ -45,7 +45,6 @@ from onboard.outputs.mapcodec import encode_keyframe
 from onboard.outputs.mavlink import MavlinkOutput
 from onboard.outputs.settings import MavlinkConfig, ZenohConfig
 from onboard.outputs.zenoh_out import ZenohOutput
-from sim_replay.attitude import attitude_for_replay  # noqa: E402
 from sim_replay.tum import open_sequence
 
 PEER = REPO / "tests" / "mavlink_peer.py"
@@ -114,7 +113,7 @@ def load_frames(seq_dir: Path, frames: int):
     cfg = Config()
     pin_one_core()
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
-    attitude, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s)
+    attitude, _ = replay_attitude(seq, cfg)
     return cfg, seq, attitude, seq.load_all(frames)
 
 

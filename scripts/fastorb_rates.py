@@ -23,12 +23,11 @@ import sys
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from onboard.app.bench import attitude_error_model
+from onboard.app.bench import replay_attitude
 from onboard.app.config import load_config
 from onboard.core.rotations import so3_log
 from onboard.fastorb.shutter import twist_rate
 from onboard.fusion.registry import make_tracker
-from sim_replay.attitude import attitude_for_replay
 from sim_replay.tum import open_sequence
 
 
@@ -38,7 +37,7 @@ def main(seq_dir: str, overrides: list[str]) -> None:
     cfg = load_config(None, ov)
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
-    att, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s)
+    att, _ = replay_attitude(seq, cfg)
     tr = make_tracker("fastorb", seq.intrinsics, cfg)
     made: set[int] = set()
     frame = {"i": 0}

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.app.bench import attitude_error_model
+from onboard.app.bench import replay_attitude
 from onboard.app.config import load_config
 from onboard.app.replay import TrackLog, evaluate_track, with_stated_ahrs
 from onboard.core.evaluation import ground_truth_at
@@ -42,7 +42,6 @@ from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.fused import FusedTracker
 from onboard.fusion.params import FusionParams
 from onboard.fusion.registry import make_tracker
-from sim_replay.attitude import attitude_for_replay
 from sim_replay.tum import open_sequence
 
 TRACKERS = ("nislam", "fastorb")
@@ -63,9 +62,7 @@ def _literal(text: str):
 def record(seq_dir: str, out: str, sets: list[str]) -> None:
     cfg = load_config(None, {k: _literal(v) for k, v in _overrides(sets).items()})
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
-    attitude, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s,
-                                      cfg.ahrs.smoothing_s, cfg.ahrs.smoothing_max_s,
-                                      cfg.nislam.attitude_sd_deg)
+    attitude, _ = replay_attitude(seq, cfg)
     cfg = with_stated_ahrs(cfg, seq_dir)
     frames = list(seq.frames())
     results: dict[str, list] = {}

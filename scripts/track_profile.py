@@ -31,13 +31,12 @@ from typing import Any
 import numpy as np
 
 from onboard.app.allocator import keep_freed_memory
-from onboard.app.bench import attitude_error_model, pin_one_core
+from onboard.app.bench import pin_one_core, replay_attitude
 from onboard.app.config import load_config
 from onboard.fusion.registry import make_tracker
 from onboard.nislam import calibration, correlation, keys
 from onboard.nislam import tracker as tracker_mod
 from onboard.nislam.tracker import NislamTracker
-from sim_replay.attitude import attitude_for_replay
 from sim_replay.tum import open_sequence
 
 PARTS = [  # (owner, attribute, label)
@@ -88,7 +87,7 @@ def main() -> int:
         keep_freed_memory()
     seq = open_sequence(args.seq, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
-    att, _ = attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s)
+    att, _ = replay_attitude(seq, cfg)
     ms: dict[str, float] = defaultdict(float)
     calls: dict[str, int] = defaultdict(int)
     instrument(ms, calls)

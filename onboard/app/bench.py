@@ -33,8 +33,8 @@ from onboard.app.loop_stats import percentiles_ms
 from onboard.core.camera import undistort_maps
 from onboard.core.messages import TrackResult
 from onboard.fusion.registry import make_tracker
-from sim_replay.attitude import AttitudeErrorModel, attitude_for_replay
-from sim_replay.tum import open_sequence
+from sim_replay.attitude import AttitudeErrorModel, AttitudeSeries, attitude_for_replay
+from sim_replay.tum import Sequence, open_sequence
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,15 @@ def attitude_error_model(cfg: Config) -> AttitudeErrorModel:
     return AttitudeErrorModel(a.noise_deg, a.bias_deg_per_sqrt_s, a.offset_ms, a.seed)
 
 
+def replay_attitude(seq: Sequence, cfg: Config) -> tuple[AttitudeSeries, str]:
+    """The attitude a replay of `seq` feeds the tracker under `cfg`: its
+    error model, gaps, and the local fit with its window widened against the
+    recording's noise (sim_replay.attitude.attitude_for_replay)."""
+    return attitude_for_replay(seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s,
+                               cfg.ahrs.smoothing_s, cfg.ahrs.smoothing_max_s,
+                               cfg.nislam.attitude_sd_deg)
+
+
 def bench(
     seq_dir: Path | str, cfg: Config, max_frames: int | None = None, repeat: int = 1
 ) -> dict[str, Any]:
@@ -79,10 +88,7 @@ def bench(
     keep_freed_memory()  # as the service runs it
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
-    attitude, _label = attitude_for_replay(
-        seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s, cfg.ahrs.smoothing_s,
-        cfg.ahrs.smoothing_max_s, cfg.nislam.attitude_sd_deg
-    )
+    attitude, _label = replay_attitude(seq, cfg)
     log.info("decoding %d frames into memory", len(seq) if max_frames is None else max_frames)
     frames, stages = read_timed(seq, max_frames)
     frame_ms: list[float] = []

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from onboard import NislamError
 from onboard.app.allocator import keep_freed_memory
-from onboard.app.bench import attitude_error_model, frame_time_stats, pin_one_core
+from onboard.app.bench import frame_time_stats, pin_one_core, replay_attitude
 from onboard.app.config import Config, config_to_toml
 from onboard.app.keyframe_anchors import KeyframeAnchors
 from onboard.core.evaluation import (
@@ -39,7 +39,7 @@ from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.registry import make_tracker
 from onboard.outputs.plot import plot_trajectory
 from onboard.outputs.ply import write_ply
-from sim_replay.attitude import attitude_for_replay, stated_noise_deg
+from sim_replay.attitude import stated_noise_deg
 from sim_replay.tum import Sequence, open_sequence
 
 log = logging.getLogger(__name__)
@@ -173,9 +173,7 @@ def replay(
     out_dir = Path(out_dir)
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
-    attitude, attitude_label = attitude_for_replay(
-        seq, attitude_error_model(cfg), cfg.replay.gt_max_gap_s, cfg.ahrs.smoothing_s,
-        cfg.ahrs.smoothing_max_s, cfg.nislam.attitude_sd_deg)
+    attitude, attitude_label = replay_attitude(seq, cfg)
     cfg = with_stated_ahrs(cfg, seq.path)
     tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
     _make_out_dir(out_dir)  # before tracking: a bad --out should not cost a whole run
