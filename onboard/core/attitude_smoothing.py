@@ -23,9 +23,9 @@ have arrived when it is tracked are used (the fit then leans on the earlier
 side); nothing waits for more.
 
 With the AHRS's white noise stated (`[nislam] attitude_sd_deg` live and
-for a real AHRS's recording; a simulated flight's own figure; ground truth
-none; plus what a replay adds: sim_replay.attitude.recorded_noise_deg) the window widens
-beyond +-`half_s`, up to `[ahrs] smoothing_max_s`, as far as the fits of
+for a real AHRS's recording; a simulated flight's own figure; ground
+truth none; plus what a replay adds: sim_replay.attitude.recorded_noise_deg)
+the window widens beyond +-`half_s`, up to `[ahrs] smoothing_max_s`, as far as the fits of
 the wider windows agree with the narrower ones within their noise
 (`adaptive_fit`, the ICI rule): a noisy AHRS on a smooth flight is averaged
 over up to 21 samples instead of 9, and where the motion bends the window
@@ -71,37 +71,6 @@ def local_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp) -> np.ndarra
     return fitted_delta(np.asarray(ts, dtype=np.float64) - t_s, np.asarray(q_slerp), qs)
 
 
-def _fitted_py(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> tuple[np.ndarray, float]:
-    """One pass: rotation vectors log(q0^-1 q_i) (the shorter way), the
-    normal equations of the quadratic in tau; its value at 0 (a rotation
-    vector from q0) and that value's leverage, e0^T (A^T A)^-1 e0: its
-    variance over one sample's. About 2 us for 9 samples, against ~150 us
-    in numpy."""
-    x0, y0, z0, w0 = -q0[0], -q0[1], -q0[2], q0[3]  # q0's conjugate
-    ata = np.zeros((3, 3))
-    atv = np.zeros((3, 3))
-    for i in range(len(tau_s)):
-        x, y, z, w = qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3]
-        rx = w0 * x + x0 * w + y0 * z - z0 * y
-        ry = w0 * y - x0 * z + y0 * w + z0 * x
-        rz = w0 * z + x0 * y - y0 * x + z0 * w
-        rw = w0 * w - x0 * x - y0 * y - z0 * z
-        if rw < 0.0:
-            rx, ry, rz, rw = -rx, -ry, -rz, -rw
-        sn = np.sqrt(rx * rx + ry * ry + rz * rz)
-        k = 2.0 * np.arctan2(sn, rw) / sn if sn > 1e-12 else 2.0
-        t = tau_s[i]
-        basis = (1.0, t, t * t)
-        v = (rx * k, ry * k, rz * k)
-        for a in range(3):
-            for b in range(3):
-                ata[a, b] += basis[a] * basis[b]
-                atv[a, b] += basis[a] * v[b]
-    e0 = np.zeros(3)
-    e0[0] = 1.0
-    return np.linalg.solve(ata, atv)[0], np.linalg.solve(ata, e0)[0]  # the value at tau = 0
-
-
 def rotvec_matrix(d: np.ndarray) -> np.ndarray:
     """Rodrigues: the rotation of rotation vector `d`."""
     theta = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
@@ -112,33 +81,14 @@ def rotvec_matrix(d: np.ndarray) -> np.ndarray:
             + (1.0 - math.cos(theta)) / (theta * theta) * (kx @ kx))
 
 
-_compiled = None
-
-
-def _fitted():
-    """The kernel compiled on first use (numba's disk cache after the first
-    process): importing the attitude buffer, e.g. to load a configuration,
-    costs no numba import."""
-    global _compiled
-    if _compiled is None:
-        from numba import njit
-        _compiled = njit(cache=True, nogil=True)(_fitted_py)
-    return _compiled
-
-
-def fitted(tau_s: np.ndarray, q_slerp: np.ndarray, qs: np.ndarray) -> tuple[np.ndarray, float]:
-    """The fitted attitude at tau = 0 as a rotation vector from `q_slerp`
-    (the slerped attitude there, xyzw; `qs` (N, 4) the samples at `tau_s`),
-    and its leverage (_fitted_py)."""
-    return _fitted()(np.ascontiguousarray(tau_s, dtype=np.float64),
-                     np.ascontiguousarray(q_slerp, dtype=np.float64),
-                     np.ascontiguousarray(qs, dtype=np.float64))
-
-
 def fitted_delta(tau_s: np.ndarray, q_slerp: np.ndarray, qs: np.ndarray) -> np.ndarray:
-    """The fitted attitude at tau = 0 as a rotation from `q_slerp`: 3x3,
-    applied on the right."""
-    return rotvec_matrix(fitted(tau_s, q_slerp, qs)[0])
+    """The quadratic fitted to the samples `qs` (N, 4, xyzw) at `tau_s`, its
+    value at tau = 0 as a rotation from `q_slerp` (the slerped attitude
+    there): 3x3, applied on the right. One window holding every sample."""
+    d, _ = _ici()(np.ascontiguousarray(tau_s, dtype=np.float64),
+                  np.ascontiguousarray(q_slerp, dtype=np.float64),
+                  np.ascontiguousarray(qs, dtype=np.float64), _ALL, 0.0, ICI_GAMMA, 0.0)
+    return rotvec_matrix(d)
 
 
 def warm_up() -> None:
@@ -175,9 +125,11 @@ def adaptive_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, w_slerp: 
 def _ici_py(tau_s: np.ndarray, q0: np.ndarray, qs: np.ndarray, halves: np.ndarray,
             noise_sd_rad: float, gamma: float, w_slerp: float) -> tuple[np.ndarray, bool]:
     """adaptive_fit's windows in one pass (numba): the samples' rotation
-    vectors from q0 once (as _fitted_py), then per window the normal
-    equations, its value at 0 and its interval. (the chosen value, whether
-    a fit was chosen at all; the slerp is (0, False))."""
+    vectors log(q0^-1 q_i) (the shorter way) once, then per window the
+    normal equations of the quadratic in tau, its value at 0 and, from its
+    leverage e0^T (A^T A)^-1 e0, its interval. Returns the chosen value
+    (a rotation vector from q0) and whether a fit was chosen (the slerp:
+    zeros, False). About 2 us for 9 samples, against ~150 us in numpy."""
     n = len(tau_s)
     x0, y0, z0, w0 = -q0[0], -q0[1], -q0[2], q0[3]
     v = np.empty((n, 3))
@@ -248,6 +200,7 @@ def _ici():
 
 
 ICI_GAMMA = 2.0  # intervals of +-2 sd: the usual choice (Katkovnik: 1.5-3)
+_ALL = np.array([np.inf])  # one window holding every sample (fitted_delta)
 LADDER_STEP = 1.5  # each window 1.5x the last
 
 
