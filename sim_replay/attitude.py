@@ -61,9 +61,15 @@ class AttitudeSeries:
     def span_s(self) -> tuple[float, float] | None:
         return (self._t_s[0], self._t_s[-1]) if self._t_s else None
 
-    def rotation_at(self, t_s: float) -> np.ndarray | None:
+    @property
+    def widens(self) -> bool:
+        """As onboard.core.attitude.AttitudeBuffer.widens."""
+        return self._noise_rad > 0.0 and self._widest_s > self.smoothing_s
+
+    def rotation_at(self, t_s: float, widen: bool = True) -> np.ndarray | None:
         """R_W_C (3x3) at `t_s`, slerped between the two neighbouring samples
-        or fitted to those around it (`smoothing_s`, as the live buffer does);
+        or fitted to those around it (`smoothing_s`, as the live buffer does,
+        `widen` as its);
         None outside the covered span or inside a gap longer than `max_gap_s`."""
         q = self._quat_at(t_s)
         if q is None:
@@ -74,7 +80,7 @@ class AttitudeSeries:
         i0 = bisect.bisect_left(self._t_s, t_s - self._widest_s)
         i1 = bisect.bisect_right(self._t_s, t_s + self._widest_s)
         delta = smoothed(t_s, self._t_s[i0:i1], self._q_arr[i0:i1], q, self.smoothing_s,
-                         self._widest_s, self._noise_rad)
+                         self._widest_s, self._noise_rad if widen else 0.0)
         return r if delta is None else r @ delta
 
     def _quat_at(self, t_s: float) -> tuple[float, float, float, float] | None:

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from onboard.core.attitude import AttitudeBuffer, AttitudeSample
 from onboard.core.rotations import so3_log
 from onboard.core.trajectory import Trajectory
+from onboard.core.attitude_smoothing import without_widening
 from sim_replay.attitude import AttitudeSeries
 
 AXIS = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
@@ -180,3 +181,51 @@ def test_the_live_buffer_widens_as_the_replay_does():
         buf.push(AttitudeSample(int(round(t * 1e9)), tuple(q)))
     for t in FRAMES:
         assert np.allclose(buf.rotation_at(t), series.rotation_at(t), atol=1e-9)
+
+
+def test_a_consumer_can_keep_the_fixed_window():
+    """without_widening: the look-ups of a widening source as with the fixed
+    +-40 ms fit (the fused tracker's view, docs/fusion.md), for the replay's
+    series and the live buffer alike; a source that does not widen is
+    returned as it is."""
+    traj = samples(100.0, noise_deg=0.1, seed=4)
+    wide = AttitudeSeries(traj, smoothing_s=0.04, smoothing_max_s=0.1, noise_sd_deg=0.1)
+    fixed = AttitudeSeries(traj, smoothing_s=0.04)
+    buf = AttitudeBuffer(smoothing_s=0.04, smoothing_max_s=0.1, noise_sd_deg=0.1)
+    for t, q in zip(traj.t_s, traj.q_xyzw):
+        buf.push(AttitudeSample(int(round(t * 1e9)), tuple(q)))
+    assert wide.widens and buf.widens and not fixed.widens
+    assert not all(np.array_equal(wide.rotation_at(t), fixed.rotation_at(t)) for t in FRAMES)
+    for source in (wide, buf):
+        view = without_widening(source)
+        assert all(np.allclose(view.rotation_at(t), fixed.rotation_at(t), atol=1e-12) for t in FRAMES)
+    assert without_widening(fixed) is fixed
+
+
+def test_the_fused_tracker_looks_the_attitude_up_without_widening():
+    """Its trackers and its filter see the fixed fit: the fusion takes
+    NI-SLAM's attitude error per frame as white."""
+    from fake_results import track_result
+    from onboard.core.messages import RgbdFrame
+    from onboard.fusion.fused import FusedTracker
+
+    seen = []
+
+    class Spy:
+        name = "nislam"
+
+        def track(self, frame, attitude):
+            seen.append(attitude.rotation_at(frame.t_s))
+            return track_result(frame.t_s, trusted=False, lost_reason="spy")
+
+        def finish(self):
+            return None
+
+    traj = samples(100.0, noise_deg=0.1, seed=5)
+    wide = AttitudeSeries(traj, smoothing_s=0.04, smoothing_max_s=0.1, noise_sd_deg=0.1)
+    fixed = AttitudeSeries(traj, smoothing_s=0.04)
+    fused = FusedTracker([Spy()])
+    img, depth = np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4), np.float32)
+    for t in FRAMES[:5]:
+        fused.track(RgbdFrame(t, img, depth), wide)
+    assert all(np.array_equal(r, fixed.rotation_at(t)) for r, t in zip(seen, FRAMES[:5]))

@@ -165,15 +165,22 @@ class AttitudeBuffer:
 
     # -- reading (the loop, the recorder)
 
-    def rotation_at(self, t_s: float) -> np.ndarray | None:
-        """R_W_C (3x3) at `t_s`, or None: no attitude there (see module doc)."""
+    @property
+    def widens(self) -> bool:
+        """Whether look-ups may widen the fit (a stated noise and room to widen)."""
+        return self._noise_rad > 0.0 and self._widest_s > self.smoothing_s
+
+    def rotation_at(self, t_s: float, widen: bool = True) -> np.ndarray | None:
+        """R_W_C (3x3) at `t_s`, or None: no attitude there (see module doc).
+        `widen` False: the fit over +-smoothing_s alone (without_widening)."""
         q = self.body_quat_at(t_s)
         if q is None:
             return None
         r_w_b = quat_to_matrix(q)
         if self.smoothing_s > 0.0:
             ts, qs = self._body_quats_between(t_s - self._widest_s, t_s + self._widest_s)
-            delta = smoothed(t_s, ts, qs, q, self.smoothing_s, self._widest_s, self._noise_rad)
+            delta = smoothed(t_s, ts, qs, q, self.smoothing_s, self._widest_s,
+                             self._noise_rad if widen else 0.0)
             if delta is not None:  # fitted in the body's tangent space, then the mount
                 r_w_b = r_w_b @ delta
         return r_w_b @ self.R_B_C

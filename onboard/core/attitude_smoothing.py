@@ -212,3 +212,25 @@ def _ladder(half_s: float, max_half_s: float) -> list[float]:
         halves.append(max_half_s)
     return halves
 
+
+class FixedWindow:
+    """An attitude source's look-ups with the fit over +-smoothing_s alone,
+    never widened (`without_widening`); everything else is the source's."""
+
+    def __init__(self, source) -> None:
+        self.source = source
+
+    def rotation_at(self, t_s: float) -> np.ndarray | None:
+        return self.source.rotation_at(t_s, widen=False)
+
+    def __getattr__(self, name: str):
+        return getattr(self.source, name)
+
+
+def without_widening(source):
+    """`source` as it looks up the attitude without the ICI widening, for a
+    consumer whose model takes each frame's attitude error as white: a fit
+    over +-100 ms leaves an error correlated over about six frames (the
+    fused tracker, docs/fusion.md). A source that does not widen is
+    returned as it is."""
+    return FixedWindow(source) if getattr(source, "widens", False) else source

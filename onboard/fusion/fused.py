@@ -54,6 +54,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from onboard.core.attitude_smoothing import without_widening
 from onboard.core.messages import AttitudeSource, KeyframeCloud, RgbdFrame, Tracker, TrackResult, TrackState
 from onboard.core.rotations import so3_log
 from onboard.fusion.agreement import OutlierCheck
@@ -106,6 +107,9 @@ class FusedTracker:
 
     # ------------------------------------------------------------------ API
     def track(self, frame: RgbdFrame, attitude: AttitudeSource) -> TrackResult:
+        # The measurement model takes NI-SLAM's attitude error per frame as
+        # white (measurements.py): the attitude's fit is not widened here.
+        attitude = without_widening(attitude)
         results = []
         for link in self.links:
             t0 = time.perf_counter()
