@@ -43,6 +43,9 @@ DEFAULT_HALF_S = 0.04
 DEFAULT_MAX_HALF_S = 0.1  # the widest window adaptive_fit tries ([ahrs] smoothing_max_s)
 MIN_SAMPLES = 5
 MIN_EACH_SIDE = 2
+ICI_GAMMA = 2.0  # adaptive_fit's intervals of +-2 sd: the usual choice (Katkovnik: 1.5-3)
+LADDER_STEP = 1.5  # ... over windows each 1.5x the last
+_ALL = np.array([np.inf])  # one window holding every sample (fitted_delta)
 
 
 def smoothed(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, half_s: float,
@@ -192,16 +195,14 @@ _ici_compiled = None
 
 
 def _ici():
+    """The kernel compiled on first use (numba's disk cache after the first
+    process): importing the attitude buffer, e.g. to load a configuration,
+    costs no numba import."""
     global _ici_compiled
     if _ici_compiled is None:
         from numba import njit
         _ici_compiled = njit(cache=True, nogil=True)(_ici_py)
     return _ici_compiled
-
-
-ICI_GAMMA = 2.0  # intervals of +-2 sd: the usual choice (Katkovnik: 1.5-3)
-_ALL = np.array([np.inf])  # one window holding every sample (fitted_delta)
-LADDER_STEP = 1.5  # each window 1.5x the last
 
 
 def _ladder(half_s: float, max_half_s: float) -> list[float]:
