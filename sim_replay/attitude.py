@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from onboard import NislamError
-from onboard.core.attitude_smoothing import DEFAULT_HALF_S, DEFAULT_MAX_HALF_S, smoothed
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, DEFAULT_MAX_HALF_S, Window
 from onboard.core.rotations import quat_slerp, quat_to_matrix
 from onboard.core.trajectory import Trajectory
 from sim_replay.tum import Sequence
@@ -46,8 +46,7 @@ class AttitudeSeries:
         self.trajectory = trajectory
         self.max_gap_s = float(max_gap_s)
         self.smoothing_s = float(smoothing_s)
-        self._widest_s = max(self.smoothing_s, float(smoothing_max_s))
-        self._noise_rad = math.radians(noise_sd_deg)
+        self._window = Window(smoothing_s, smoothing_max_s, noise_sd_deg)
         self._t_s: list[float] = [float(t) for t in trajectory.t_s]
         self._q_xyzw: list[tuple[float, float, float, float]] = [
             (float(q[0]), float(q[1]), float(q[2]), float(q[3])) for q in trajectory.q_xyzw
@@ -64,7 +63,7 @@ class AttitudeSeries:
     @property
     def widens(self) -> bool:
         """As onboard.core.attitude.AttitudeBuffer.widens."""
-        return self._noise_rad > 0.0 and self._widest_s > self.smoothing_s
+        return self._window.widens
 
     def rotation_at(self, t_s: float, widen: bool = True) -> np.ndarray | None:
         """R_W_C (3x3) at `t_s`, slerped between the two neighbouring samples
@@ -77,10 +76,10 @@ class AttitudeSeries:
         r = quat_to_matrix(q)
         if self.smoothing_s <= 0.0:
             return r
-        i0 = bisect.bisect_left(self._t_s, t_s - self._widest_s)
-        i1 = bisect.bisect_right(self._t_s, t_s + self._widest_s)
-        delta = smoothed(t_s, self._t_s[i0:i1], self._q_arr[i0:i1], q, self.smoothing_s,
-                         self._widest_s, self._noise_rad if widen else 0.0)
+        w = self._window
+        i0 = bisect.bisect_left(self._t_s, t_s - w.widest_s)
+        i1 = bisect.bisect_right(self._t_s, t_s + w.widest_s)
+        delta = w.fit(t_s, self._t_s[i0:i1], self._q_arr[i0:i1], q, widen)
         return r if delta is None else r @ delta
 
     def _quat_at(self, t_s: float) -> tuple[float, float, float, float] | None:

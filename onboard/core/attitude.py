@@ -33,7 +33,6 @@ latency and jitter: that bounds the attitude error a jump can cause.
 from __future__ import annotations
 
 import bisect
-import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.device_state import DeviceState, State
-from onboard.core.attitude_smoothing import DEFAULT_HALF_S, smoothed
+from onboard.core.attitude_smoothing import DEFAULT_HALF_S, Window
 from onboard.core.rotations import (
     Quat,
     quat_conj,
@@ -119,8 +118,7 @@ class AttitudeBuffer:
         self.capacity = int(capacity)
         self.max_gap_s = float(max_gap_s)
         self.smoothing_s = float(smoothing_s)
-        self._widest_s = max(self.smoothing_s, float(smoothing_max_s))
-        self._noise_rad = math.radians(noise_sd_deg)
+        self._window = Window(smoothing_s, smoothing_max_s, noise_sd_deg)
         self._lock = threading.Lock()
         self._t_s: list[float] = []
         self._samples: list[AttitudeSample] = []
@@ -168,7 +166,7 @@ class AttitudeBuffer:
     @property
     def widens(self) -> bool:
         """Whether look-ups may widen the fit (a stated noise and room to widen)."""
-        return self._noise_rad > 0.0 and self._widest_s > self.smoothing_s
+        return self._window.widens
 
     def rotation_at(self, t_s: float, widen: bool = True) -> np.ndarray | None:
         """R_W_C (3x3) at `t_s`, or None: no attitude there (see module doc).
@@ -178,9 +176,9 @@ class AttitudeBuffer:
             return None
         r_w_b = quat_to_matrix(q)
         if self.smoothing_s > 0.0:
-            ts, qs = self._body_quats_between(t_s - self._widest_s, t_s + self._widest_s)
-            delta = smoothed(t_s, ts, qs, q, self.smoothing_s, self._widest_s,
-                             self._noise_rad if widen else 0.0)
+            w = self._window
+            ts, qs = self._body_quats_between(t_s - w.widest_s, t_s + w.widest_s)
+            delta = w.fit(t_s, ts, qs, q, widen)
             if delta is not None:  # fitted in the body's tangent space, then the mount
                 r_w_b = r_w_b @ delta
         return r_w_b @ self.R_B_C

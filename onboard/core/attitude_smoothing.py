@@ -48,19 +48,33 @@ LADDER_STEP = 1.5  # ... over windows each 1.5x the last
 _ALL = np.array([np.inf])  # one window holding every sample (fitted_delta)
 
 
-def smoothed(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, half_s: float,
-             max_half_s: float = 0.0, noise_sd_rad: float = 0.0) -> np.ndarray | None:
-    """The attitude at `t_s` as a rotation from `q_slerp` (3x3, on the right),
-    from the samples (increasing stamps `ts`, quaternions `qs` (N, 4) xyzw)
-    within +-max(half_s, max_half_s): the fit over +-half_s, or with a
-    stated white noise the widest window the data allow (`adaptive_fit`);
-    None: the slerp stands."""
-    if noise_sd_rad <= 0.0 or max_half_s <= half_s:
-        i0, i1 = bisect.bisect_left(ts, t_s - half_s), bisect.bisect_right(ts, t_s + half_s)
-        return local_fit(t_s, ts[i0:i1], qs[i0:i1], q_slerp)
-    j = bisect.bisect_right(ts, t_s)
-    w = 0.0 if j == 0 or j >= len(ts) or ts[j - 1] == t_s else (t_s - ts[j - 1]) / (ts[j] - ts[j - 1])
-    return adaptive_fit(t_s, ts, qs, q_slerp, w, half_s, max_half_s, noise_sd_rad)
+class Window:
+    """An attitude source's local-fit window: +-`half_s`, widened up to
+    +-`max_half_s` where the AHRS states its white noise (`adaptive_fit`).
+    The live buffer and the replay's series each hold one."""
+
+    def __init__(self, half_s: float, max_half_s: float = 0.0, noise_sd_deg: float = 0.0) -> None:
+        self.half_s = float(half_s)
+        self.widest_s = max(self.half_s, float(max_half_s))  # the samples a look-up needs
+        self.noise_sd_rad = math.radians(noise_sd_deg)
+        # half_s 0: the slerp alone (the sources never fit), nothing to widen
+        self.widens = self.half_s > 0.0 and self.noise_sd_rad > 0.0 and self.widest_s > self.half_s
+        self._halves = np.asarray(_ladder(self.half_s, self.widest_s) if self.widens else [self.half_s])
+
+    def fit(self, t_s: float, ts: list[float], qs: np.ndarray, q_slerp,
+            widen: bool = True) -> np.ndarray | None:
+        """The attitude at `t_s` as a rotation from `q_slerp` (3x3, on the
+        right), from the samples (increasing stamps `ts`, quaternions `qs`
+        (N, 4) xyzw) within +-widest_s: the fit over +-half_s, or (`widen`
+        and a stated noise) the widest window the data allow; None: the
+        slerp stands."""
+        if not (widen and self.widens):
+            i0 = bisect.bisect_left(ts, t_s - self.half_s)
+            i1 = bisect.bisect_right(ts, t_s + self.half_s)
+            return local_fit(t_s, ts[i0:i1], qs[i0:i1], q_slerp)
+        j = bisect.bisect_right(ts, t_s)
+        w = 0.0 if j == 0 or j >= len(ts) or ts[j - 1] == t_s else (t_s - ts[j - 1]) / (ts[j] - ts[j - 1])
+        return adaptive_fit(t_s, ts, qs, q_slerp, w, self._halves, self.noise_sd_rad)
 
 
 def local_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp) -> np.ndarray | None:
@@ -98,15 +112,15 @@ def warm_up() -> None:
     """Compile (or load from numba's disk cache) before the first frame."""
     q = np.array([[0.0, 0.0, 0.0, 1.0]] * 5)
     fitted_delta(np.linspace(-0.02, 0.02, 5), q[0], q)
-    adaptive_fit(0.0, [-0.02, -0.01, 0.0, 0.01, 0.02], q, q[0], 0.0, 0.01, 0.02, 1e-3)
+    adaptive_fit(0.0, [-0.02, -0.01, 0.0, 0.01, 0.02], q, q[0], 0.0, np.array([0.01, 0.02]), 1e-3)
 
 
 def adaptive_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, w_slerp: float,
-                 half_s: float, max_half_s: float, noise_sd_rad: float) -> np.ndarray | None:
-    """`local_fit` over the widest window up to +-`max_half_s` that the data
-    allow, for an AHRS whose samples carry white noise of `noise_sd_rad` per
-    axis (`ts`, `qs`: the samples within +-max_half_s; `w_slerp`: where t_s
-    lies between its two neighbours, 0-1).
+                 halves_s: np.ndarray, noise_sd_rad: float) -> np.ndarray | None:
+    """`local_fit` over the widest of the half windows `halves_s` (increasing,
+    `_ladder`) that the data allow, for an AHRS whose samples carry white
+    noise of `noise_sd_rad` per axis (`ts`, `qs`: the samples within the
+    widest; `w_slerp`: where t_s lies between its two neighbours, 0-1).
 
     A wider window averages more jitter but flattens more of the motion; the
     Intersection of Confidence Intervals rule (Goldenshluger & Nemirovski
@@ -118,9 +132,8 @@ def adaptive_fit(t_s: float, ts: list[float], qs: np.ndarray, q_slerp, w_slerp: 
     bends the wider fit away, the intervals part. The narrowest estimate is
     the fit over +-half_s, or the slerp where that is too sparse (an attitude
     sampled at the frame times). None: the slerp stands."""
-    halves = np.asarray(_ladder(half_s, max_half_s), dtype=np.float64)
     d, found = _ici()(np.asarray(ts, dtype=np.float64) - t_s, np.asarray(q_slerp, dtype=np.float64),
-                      np.ascontiguousarray(qs, dtype=np.float64), halves, noise_sd_rad, ICI_GAMMA,
+                      np.ascontiguousarray(qs, dtype=np.float64), halves_s, noise_sd_rad, ICI_GAMMA,
                       w_slerp)
     return rotvec_matrix(d) if found else None
 
@@ -206,6 +219,7 @@ def _ici():
 
 
 def _ladder(half_s: float, max_half_s: float) -> list[float]:
+    """adaptive_fit's half windows: half_s, x LADDER_STEP, ..., max_half_s."""
     halves = [half_s]
     while halves[-1] * LADDER_STEP < max_half_s - 1e-9:
         halves.append(halves[-1] * LADDER_STEP)
