@@ -38,7 +38,7 @@ from fake_results import track_result  # noqa: E402
 from subproc import JsonLinesProcess, free_port, python_script  # noqa: E402
 
 from onboard.app.bench import pin_one_core, replay_attitude
-from onboard.app.config import Config
+from onboard.app.config import Config, with_tracker_resolved
 from onboard.fusion.registry import make_tracker
 from onboard.outputs.group import NullOutput, Output, OutputGroup
 from onboard.outputs.mapcodec import encode_keyframe
@@ -110,7 +110,7 @@ def mavlink_rate(seconds: float, rate_hz: float) -> dict[str, Any]:
 
 
 def load_frames(seq_dir: Path, frames: int):
-    cfg = Config()
+    cfg = with_tracker_resolved(Config(), service=True)  # the loop's tracker
     pin_one_core()
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort)
     attitude, _ = replay_attitude(seq, cfg)

@@ -9,7 +9,14 @@ from pathlib import Path
 import pytest
 
 from onboard import NislamError
-from onboard.app.config import SECTIONS, Config, config_to_dict, config_to_toml, load_config
+from onboard.app.config import (
+    SECTIONS,
+    Config,
+    config_to_dict,
+    config_to_toml,
+    load_config,
+    with_tracker_resolved,
+)
 from onboard.app.config_rules import RULES
 from onboard.fusion.registry import TRACKER_NAMES, make_tracker
 from onboard.nislam.params import NislamParams
@@ -41,7 +48,21 @@ def test_defaults_without_file() -> None:
     assert cfg == Config()
     assert cfg.nislam == NislamParams()
     assert cfg.replay.assoc_max_dt_s == 0.02 and cfg.replay.gt_max_gap_s == 0.2
-    assert cfg.tracker.name == "nislam"
+    assert cfg.tracker.name == "auto"
+
+
+def test_auto_tracker_is_each_commands_own() -> None:
+    """`[tracker] name = "auto"` (the default): the onboard loop flies on the
+    fused tracker, replay and bench measure NI-SLAM; a name given is kept."""
+    auto = Config()
+    assert with_tracker_resolved(auto, service=True).tracker.name == "fused"
+    assert with_tracker_resolved(auto, service=False).tracker.name == "nislam"
+    for name in TRACKER_NAMES:
+        given = load_config(None, {"tracker.name": name})
+        assert with_tracker_resolved(given, service=True).tracker.name == name
+        assert with_tracker_resolved(given, service=False).tracker.name == name
+    # Resolved, the rest of the configuration is untouched.
+    assert dataclasses.replace(with_tracker_resolved(auto, service=True), tracker=auto.tracker) == auto
 
 
 def test_unknown_key_is_named(tmp_path: Path) -> None:
@@ -86,7 +107,7 @@ def test_wrong_type_is_named(tmp_path: Path, toml: str, expected: str) -> None:
         ("[nislam]\npsr_lost = -1.0\n", "'nislam.psr_lost' must be >= 0, got -1.0"),
         ("[attitude]\nnoise_deg = -0.5\n", "'attitude.noise_deg' must be >= 0, got -0.5"),
         ("[attitude]\nseed = -1\n", "'attitude.seed' must be >= 0, got -1"),
-        ("[tracker]\nname = \"orb\"\n", "'tracker.name' must be one of 'nislam', 'fastorb', 'fused'"),
+        ("[tracker]\nname = \"orb\"\n", "'tracker.name' must be one of 'auto', 'nislam', 'fastorb', 'fused'"),
         (
             "[nislam]\nmin_depth_m = 7.0\n",
             "'nislam.min_depth_m' (7) must be < 'nislam.max_depth_m'",

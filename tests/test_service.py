@@ -93,19 +93,22 @@ degraded_gap_s = 2.0
 
 
 def start_service(seq: Path, out: Path, mav_port: int, zenoh_ep: str, *extra: str,
-                  mavlink_keys: str = "") -> JsonLinesProcess:
-    """`extra` lines go into [service], `mavlink_keys` into [mavlink]."""
+                  mavlink_keys: str = "", tracker: str | None = "nislam") -> JsonLinesProcess:
+    """`extra` lines go into [service], `mavlink_keys` into [mavlink].
+    `tracker`: NI-SLAM unless told (what a pose gap means is its rule: no
+    attitude, no pose); None runs `nislam run`'s own default, the fused one."""
     cfg = out.parent / f"{out.name}.toml"
     cfg.write_text(TEST_PROFILE.replace("[mavlink]\n", "[mavlink]\n" + mavlink_keys)
                    + "".join(extra))
     return JsonLinesProcess([
         str(NISLAM), "run", "--replay", str(seq), "--config", str(cfg), "--out", str(out),
         "--mavlink", f"udpout:127.0.0.1:{mav_port}", "--zenoh-connect", zenoh_ep,
-        "--vehicle", "hil",
+        "--vehicle", "hil", *(["--tracker", tracker] if tracker else []),
     ])
 
 
-def run_with_peers(seq: Path, out: Path, *extra: str, sigterm_after_poses: int | None = None
+def run_with_peers(seq: Path, out: Path, *extra: str, sigterm_after_poses: int | None = None,
+                   tracker: str | None = "nislam"
                    ) -> tuple[int, list[dict], list[str], JsonLinesProcess]:
     """Run the service on `seq` until it ends (or SIGTERM after that many
     poses); returns (exit code, MAVLink messages, zenoh status states, process)."""
@@ -113,7 +116,7 @@ def run_with_peers(seq: Path, out: Path, *extra: str, sigterm_after_poses: int |
     peer = JsonLinesProcess(python_script(PEER, f"udpin:127.0.0.1:{port}"))
     peer.wait_for(lambda lines: any(m.get("ready") for m in lines), 60, "peer ready")
     sub = StatusSubscriber("hil")
-    svc = start_service(seq, out, port, sub.endpoint, *extra)
+    svc = start_service(seq, out, port, sub.endpoint, *extra, tracker=tracker)
     try:
         if sigterm_after_poses is not None:
             peer.wait_for(lambda ls: sum(m.get("mavpackettype") == "ODOMETRY" for m in ls)
@@ -303,6 +306,34 @@ def test_service_survives_a_damaged_flight_and_never_sends_an_untrusted_pose(
         # counted as late at the source instead)
         late = metrics["frames_late_at_source"] if key == "unreadable_files" else 0
         assert metrics["skipped"][key] + late >= n, (key, metrics["skipped"], late)
+
+
+def test_the_default_fused_tracker_keeps_the_feed_through_an_attitude_gap_without_a_reset(
+        flights: dict[str, Path], tmp_path: Path) -> None:
+    """`nislam run`'s own tracker (fused, issue 19) on the damaged flight:
+    through the AHRS gap FastORB carries the pose, so the feed goes on with
+    no reset and no frame is lost for want of attitude; the fallback, which
+    only NI-SLAM alone needs, is not used even when configured."""
+    seq = flights["damaged"]
+    rc, msgs, states, svc = run_with_peers(seq, tmp_path / "out",
+                                           'fallback_tracker = "fastorb"\n', tracker=None)
+    assert rc == 0, svc.stderr[-2000:]
+    odometry = of(msgs, "ODOMETRY")
+    t0, t1 = gap_window(seq)
+    times = recording_times(odometry, tmp_path / "out")
+    inside = (times > t0 + 0.05) & (times < t1 - 0.05)
+    assert inside.sum() >= 5  # posed inside the gap (NI-SLAM alone sends nothing there)
+    assert len({m["reset_counter"] for m in odometry}) == 1  # one epoch: no reset, no switch
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["tracker"] == "fused" and metrics["fallback_tracker"] == ""
+    assert metrics["tracker_switches"] == 0
+    assert metrics["lost_reasons"].get("no attitude", 0) == 0, metrics["lost_reasons"]
+    # Used for the gap's frames, NI-SLAM left out of them and said why.
+    left_out = metrics["fusion"]["trackers"]["nislam"]["left_out"]
+    assert left_out.get("lost: no attitude", 0) >= 5, left_out
+    ate = ate_of_odometry(odometry, seq, tmp_path / "out")
+    assert ate < 0.02, ate
+    print(f"ATE through the gap, fused: {ate * 1e3:.1f} mm")
 
 
 def test_fallback_tracker_keeps_the_feed_through_an_attitude_gap(

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from onboard.app.allocator import keep_freed_memory
-from onboard.app.config import Config
+from onboard.app.config import Config, with_tracker_resolved
 from onboard.app.loop_stats import percentiles_ms
 from onboard.core.camera import undistort_maps
 from onboard.core.messages import TrackResult
@@ -86,6 +86,7 @@ def bench(
     fresh tracker each (so every pass includes the same key-frame work)."""
     pin_one_core()
     keep_freed_memory()  # as the service runs it
+    cfg = with_tracker_resolved(cfg, service=False)
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
     attitude, _label = replay_attitude(seq, cfg)

@@ -47,6 +47,7 @@ from onboard.app.config_sections import (
 )
 from onboard.fastorb.params import FastOrbParams
 from onboard.fusion.params import FusionParams
+from onboard.fusion.registry import resolve_name
 from onboard.nislam.params import NislamParams
 from onboard.outputs.settings import MavlinkConfig, RouterConfig, ZenohConfig
 
@@ -126,6 +127,16 @@ def load_config(
     _check_order(cfg, str(path) if path is not None else "config")
     log.debug("effective config:\n%s", config_to_toml(cfg))
     return cfg
+
+
+def with_tracker_resolved(cfg: Config, service: bool) -> Config:
+    """`cfg` with `[tracker] name = "auto"` replaced by the tracker the command
+    runs (the onboard loop, `service`: fused; replay and bench: NI-SLAM), so
+    the configuration written beside a result names the tracker that made it."""
+    name = resolve_name(cfg.tracker.name, service)
+    if name == cfg.tracker.name:
+        return cfg
+    return dataclasses.replace(cfg, tracker=dataclasses.replace(cfg.tracker, name=name))
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

@@ -12,7 +12,7 @@ from typing import Any
 
 from drivers.oak import IMU_WORLDS, STEREO_PRESETS
 from onboard.app.config_sections import AHRS_SOURCES, SIM_FOLLOW_REQUESTS
-from onboard.fusion.registry import TRACKER_NAMES
+from onboard.fusion.registry import AUTO, TRACKER_NAMES
 from onboard.outputs.settings import (
     MAVLINK_MESSAGES,
     MOUNT_NAMES,
@@ -169,7 +169,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "attitude.bias_deg_per_sqrt_s": NON_NEGATIVE,
     "attitude.offset_ms": ANY,
     "attitude.seed": NON_NEGATIVE,  # numpy's default_rng rejects negative seeds
-    "tracker.name": Choice(TRACKER_NAMES),
+    "tracker.name": Choice((AUTO,) + TRACKER_NAMES),
     # sizes and counts
     "nislam.grid_width": POSITIVE,
     "nislam.grid_height": POSITIVE,

@@ -33,7 +33,9 @@ class AttitudeErrorConfig:
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    name: str = "nislam"
+    # "auto": `nislam run` runs "fused", `nislam replay` / `bench` "nislam"
+    # (onboard.fusion.registry.resolve_name; app.config.with_tracker_resolved).
+    name: str = "auto"
 
 
 # Drivers (drivers/) and `nislam record`. The flight-controller link the

@@ -25,7 +25,7 @@ from tqdm import tqdm
 from onboard import NislamError
 from onboard.app.allocator import keep_freed_memory
 from onboard.app.bench import frame_time_stats, pin_one_core, replay_attitude
-from onboard.app.config import Config, config_to_toml
+from onboard.app.config import Config, config_to_toml, with_tracker_resolved
 from onboard.app.keyframe_anchors import KeyframeAnchors
 from onboard.core.evaluation import (
     RPE_LAGS_FRAMES,
@@ -174,7 +174,7 @@ def replay(
     seq = open_sequence(seq_dir, cfg.replay.assoc_max_dt_s, cfg.replay.undistort,
                         cfg.replay.stamp_window_s)
     attitude, attitude_label = replay_attitude(seq, cfg)
-    cfg = with_stated_ahrs(cfg, seq.path)
+    cfg = with_stated_ahrs(with_tracker_resolved(cfg, service=False), seq.path)
     tracker = make_tracker(cfg.tracker.name, seq.intrinsics, cfg)
     _make_out_dir(out_dir)  # before tracking: a bad --out should not cost a whole run
 

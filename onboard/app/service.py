@@ -35,7 +35,7 @@ import numpy as np
 
 from onboard.app.allocator import keep_freed_memory
 from onboard.app.bench import pin_one_core
-from onboard.app.config import Config, config_to_toml
+from onboard.app.config import Config, config_to_toml, with_tracker_resolved
 from onboard.app.cpu_steal import CpuTicks, read_ticks, steal_share
 from onboard.app.delivery import DeliveryWatch, delivery_lines
 from onboard.app.health import HealthMonitor, HealthThresholds
@@ -62,14 +62,13 @@ from onboard.app.replay import (
 from onboard.app.run_files import FileWrites, LiveTrajectory
 from onboard.app.sdnotify import Notifier
 from onboard.app.sources import Sources
-from onboard.core import attitude_smoothing
+from onboard.app.warm import warm_up
 from onboard.core.camera import CameraIntrinsics
 from onboard.core.messages import Health, HealthReport, Tracker, TrackResult
 from onboard.core.pose_gate import PoseGate
 from onboard.core.trajectory import write_tum
-from onboard.fusion.registry import make_tracker
+from onboard.fusion.registry import NEEDS_ATTITUDE, make_tracker
 from onboard.fusion.switching import SwitchingTracker
-from onboard.nislam import kernels
 from onboard.outputs.group import Output, make_outputs
 from onboard.outputs.wake import Wake, defer_wakeups
 
@@ -105,7 +104,7 @@ class Service:
     ) -> None:
         """`realtime`: raise the process to `[service] realtime_priority` once
         tracking (a process-wide setting: only the program's entry point asks)."""
-        self.cfg = cfg
+        self.cfg = cfg = with_tracker_resolved(cfg, service=True)
         self.sc = cfg.service
         self.sources = sources
         self.stop = stop
@@ -170,8 +169,7 @@ class Service:
         devices_first = self.sources.devices is not None
         if devices_first:
             self.sources.start()
-        kernels.warm_up()
-        attitude_smoothing.warm_up()  # the attitude buffer's local fit, for the tracker
+        warm_up()  # every tracker's kernels and the attitude buffer's fit: the fallback's too
         if not devices_first:
             self.sources.start()
         if self.live is not None:
@@ -239,12 +237,18 @@ class Service:
             return False
         intr = cam.intrinsics()
         primary = self.tracker_factory(self.cfg.tracker.name, intr, self.cfg)
-        fb = self.sc.fallback_tracker
+        fb = self._fallback_name()
         make_fb = (lambda: self.tracker_factory(fb, intr, self.cfg)) if fb else None
         self.tracker = SwitchingTracker(primary, make_fb, self.sc.return_after_s)
         log.info("camera up: %dx%d, fx %.1f; tracker %s%s", intr.width, intr.height, intr.fx,
                  primary.name, f" (fallback {fb})" if fb else "")
         return True
+
+    def _fallback_name(self) -> str:
+        """`[service] fallback_tracker`, where the primary can use one: only a
+        tracker that reports lost without the AHRS hands over to it (the fused
+        tracker carries on through an attitude gap on FastORB by itself)."""
+        return self.sc.fallback_tracker if self.cfg.tracker.name in NEEDS_ATTITUDE else ""
 
     def _frame(self, outputs: Output, frame: Any) -> None:
         tracker = self.tracker
@@ -397,7 +401,7 @@ class Service:
             "source": self.sources.label,
             "attitude_source": self.sources.attitude_label,
             "tracker": self.cfg.tracker.name,
-            "fallback_tracker": self.sc.fallback_tracker,
+            "fallback_tracker": self._fallback_name(),
             "seconds": seconds,
             "frames": s.frames,
             "frames_tracked": s.tracked,

@@ -76,6 +76,26 @@ _REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
 }
 TRACKER_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 
+# `[tracker] name = "auto"` (the default): each command's own choice. The
+# onboard loop (`nislam run`) flies on the fused tracker, which keeps a pose
+# while either tracker tracks (docs/fusion.md); `nislam replay` and `bench`
+# measure NI-SLAM, the paper's tracker, unless told otherwise.
+AUTO = "auto"
+SERVICE_TRACKER = "fused"
+OFFLINE_TRACKER = "nislam"
+# Trackers that report lost without the AHRS ("no attitude"): only they take
+# the service's `fallback_tracker`. The fused tracker carries on through an
+# attitude gap on FastORB's own rotation (onboard.fusion.fused).
+NEEDS_ATTITUDE = frozenset({"nislam"})
+
+
+def resolve_name(name: str, service: bool) -> str:
+    """`name` with "auto" replaced by the onboard loop's (`service`) or the
+    offline tools' default."""
+    if name != AUTO:
+        return name
+    return SERVICE_TRACKER if service else OFFLINE_TRACKER
+
 
 def make_tracker(name: str, intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     """A fresh tracker `name` for a camera with `intrinsics`, parameters from `cfg`."""
