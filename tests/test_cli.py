@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.app.config import Config, load_config
+from onboard.app.config import Config, load_config, with_tracker_resolved
 from onboard.app.replay import RESULT_FILES, replay
 from onboard.core.trajectory import read_tum
 from onboard.outputs.ply import read_ply
@@ -72,7 +72,8 @@ def test_replay_writes_every_result(replay_out: Path) -> None:
     assert metrics["keyframes"] >= 1
     assert metrics["frame_ms_median"] > 0 and metrics["hz"] > 0
     assert metrics["tracker"] == "nislam"
-    assert load_config(replay_out / "config.toml") == Config()
+    # The configuration it ran with, the tracker named ("auto" chose NI-SLAM).
+    assert load_config(replay_out / "config.toml") == with_tracker_resolved(Config(), service=False)
     xyz, rgb = read_ply(replay_out / "map.ply")
     assert len(xyz) == metrics["map_points"] > 1000 and rgb.any()
     assert (replay_out / "trajectory.png").read_bytes().startswith(b"\x89PNG")
