@@ -55,7 +55,7 @@ def _add_replay_bench_parsers(sub: Any, verbose: argparse.ArgumentParser) -> Non
 
 def _add_common(p: argparse.ArgumentParser) -> None:
     config_arg(p)
-    p.add_argument("--tracker", metavar="NAME", help="tracker (nislam, fastorb, fused)")
+    p.add_argument("--tracker", metavar="NAME", help="tracker (nislam, fastorb, fused; default nislam)")
     p.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames")
     ba = p.add_mutually_exclusive_group()
     ba.add_argument("--local-ba", action="store_true", default=None,
@@ -180,7 +180,7 @@ def _add_run_parser(sub: Any, verbose: argparse.ArgumentParser) -> None:
     rn.add_argument("--zenoh-mode", choices=("peer", "client"),
                     help="zenoh mode ([zenoh] mode; client: of a fleet router, docs/fleet.md)")
     rn.add_argument("--vehicle", metavar="ID", help="zenoh vehicle id ([zenoh] vehicle)")
-    rn.add_argument("--tracker", metavar="NAME", help="primary tracker (nislam, fastorb, fused)")
+    rn.add_argument("--tracker", metavar="NAME", help="tracker (fused, nislam, fastorb; default fused)")
     rn.add_argument("--no-loop-closure", action="store_true",
                     help="FastORB without loop closing ([fastorb] loop_closure = false)")
     src = rn.add_mutually_exclusive_group()
