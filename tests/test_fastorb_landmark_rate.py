@@ -138,8 +138,9 @@ def test_settled_landmarks_sit_where_the_rolling_shutter_saw_them() -> None:
     frames = [RgbdFrame(k * DT, *_rs_render(room, _turn, k * DT)) for k in range(14)]
     out = {}
     for settle_on in (False, True):
+        # Loop closing on, for its records; it queries only in backend_step(), never run here.
         params = FastOrbParams(rolling_shutter_readout_s=READOUT, keyframe_max_frames=3,
-                               rolling_shutter_settle_landmarks=settle_on, loop_closure=False)
+                               rolling_shutter_settle_landmarks=settle_on)
         tr = FastOrbTracker(INTR, params)
         tracked = sum(tr.track(f, NoAttitude()).trusted for f in frames)
         tr.finish_frame()

@@ -171,3 +171,39 @@ def test_no_loop_closure_switch_reaches_the_tracker_parameters() -> None:
     assert load_config(None).fastorb.loop_closure
     off = load_config(None, _overrides(argparse.Namespace(no_loop_closure=True)), "command line")
     assert not off.fastorb.loop_closure
+
+
+def test_switched_off_it_keeps_only_each_key_frames_pose() -> None:
+    """With loop closing off nothing but a key frame's pose is ever read
+    (`pose_of`, after the local map forgot it), so its record holds no
+    descriptors or points: memory that would grow with the flight (14 MB a
+    minute of `nislam run` on a looping flight when the fused tracker kept
+    them, docs/fusion.md). A forgotten key frame's pose is still told."""
+    rng = np.random.default_rng(4)
+    xyz = rng.uniform([-2.0, 2.0, -1.5], [2.0, 6.0, 1.5], (800, 3))  # ahead: along +y
+    desc = rng.integers(0, 256, (800, 32), dtype=np.uint8)
+    ids = np.arange(800)
+    poses = [_camera(np.array([0.05 * k, 0.0, 0.0]), np.pi / 2) for k in range(30)]
+    kfs = [_keyframe(k, T, T, xyz, desc, ids, rng) for k, T in enumerate(poses)]
+    assert min(len(kf.ids) for kf in kfs) > 100  # each key frame sees landmarks
+    for enabled in (True, False):
+        loops = _run(kfs, enabled=enabled)
+        held = sum(r.desc.nbytes + r.p_C.nbytes + r.ids.nbytes for r in loops._records)
+        assert (held > 0) if enabled else (held == 0), (enabled, held)
+        np.testing.assert_array_equal(loops.pose_of(0), poses[0])  # forgotten by the local map
+
+
+def test_the_fused_tracker_runs_fastorb_without_its_loop_closing() -> None:
+    """The filter closes its loops on NI-SLAM's key clones; FastORB's own
+    corrections would move its world under it. Whatever [fastorb] says."""
+    from onboard.app.config import load_config
+    from onboard.core.camera import CameraIntrinsics
+    from onboard.fusion.registry import make_tracker
+
+    cfg = load_config(None)
+    assert cfg.fastorb.loop_closure
+    fused = make_tracker("fused", CameraIntrinsics(FX, FX, W / 2, H / 2, W, H), cfg)
+    fastorb = fused.links[1].tracker
+    assert fastorb.name == "fastorb" and not fastorb.p.loop_closure and not fastorb.loops.enabled
+    alone = make_tracker("fastorb", CameraIntrinsics(FX, FX, W / 2, H / 2, W, H), cfg)
+    assert alone.loops.enabled

@@ -97,6 +97,11 @@ class LoopStats:
     correct_ms: list[float] = field(default_factory=list)
 
 
+_NO_DESC = np.zeros((0, 32), np.uint8)
+_NO_POINTS = np.zeros((0, 3))
+_NO_IDS = np.zeros(0, np.int64)
+
+
 class LoopClosing:
     def __init__(self, local_map: LocalMap, K: np.ndarray, s: LoopSettings = LoopSettings(),
                  enabled: bool = True, pnp: PnpSettings | None = None):
@@ -149,9 +154,12 @@ class LoopClosing:
         prev = self._records[-1] if self._records else None
         path = 0.0 if prev is None else prev.path_m + float(np.linalg.norm(
             camera_in_world(kf.T_cw)[0] - camera_in_world(prev.T_cw)[0]))
-        p_C = kf.xyz_W @ kf.T_cw[:3, :3].T + kf.T_cw[:3, 3]
-        # The key frame's arrays are replaced, never written in place: no copies.
-        rec = KeyRecord(kf.keyframe_id, kf.T_cw, kf.desc, p_C, kf.ids, path, kf.uv)
+        if self.enabled:
+            p_C = kf.xyz_W @ kf.T_cw[:3, :3].T + kf.T_cw[:3, 3]
+            # The key frame's arrays are replaced, never written in place: no copies.
+            rec = KeyRecord(kf.keyframe_id, kf.T_cw, kf.desc, p_C, kf.ids, path, kf.uv)
+        else:  # only its pose is ever read (pose_of): the rest would grow with the flight
+            rec = KeyRecord(kf.keyframe_id, kf.T_cw, _NO_DESC, _NO_POINTS, _NO_IDS, path)
         self._index[kf.keyframe_id] = len(self._records)
         self._records.append(rec)
         self._times[kf.keyframe_id] = kf.t_s

@@ -51,10 +51,11 @@ def _make_nislam(intrinsics: CameraIntrinsics, cfg: TrackerSections, **overrides
     return NislamTracker(intrinsics, dataclasses.replace(params, **overrides))
 
 
-def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections, **overrides: Any) -> Tracker:
+    """`overrides`: FastOrbParams fields the caller fixes whatever the config says."""
     from onboard.fastorb.tracker import FastOrbTracker
 
-    return FastOrbTracker(intrinsics, cfg.fastorb)
+    return FastOrbTracker(intrinsics, dataclasses.replace(cfg.fastorb, **overrides))
 
 
 def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
@@ -66,7 +67,13 @@ def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     # (onboard.fusion.fused) and NI-SLAM's own key positions never reach the
     # output, so its keys stay at the paper's frame (Eq. 17) whatever the setting.
     nislam = _make_nislam(intrinsics, cfg, key_from_last_firm_frame=False)
-    return FusedTracker([nislam, _make_fastorb(intrinsics, cfg)], params)
+    # The filter closes its loops on NI-SLAM's key clones. FastORB's own loop
+    # closing would move its world under the filter (a correction is never
+    # motion: docs/fusion.md), and its records of every key frame grow with
+    # the flight: 14 MB a minute and a query slice past the frame interval
+    # after 4 minutes of `nislam run` (docs/fusion.md, "A long flight").
+    fastorb = _make_fastorb(intrinsics, cfg, loop_closure=False)
+    return FusedTracker([nislam, fastorb], params)
 
 
 _REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
