@@ -7,9 +7,10 @@ keep its per-frame TrackResults, then replay the fusion alone on them
     python scripts/fusion_cache.py why CACHE.pkl [...] [--set ...]   (why the coverage is off)
     python scripts/fusion_cache.py checks CACHE.pkl [...] [--set ...]   (what the outlier check left out)
 
-`record` runs NI-SLAM and FastORB separately on every frame of SEQ (the fused
-tracker runs them independently too, so their results are the same) with the
-replay's attitude source, and pickles the results (key-frame clouds dropped),
+`record` runs NI-SLAM and FastORB separately on every frame of SEQ, built and
+fed as the fused tracker builds and feeds them (`registry.fused_parts`, the
+attitude without widening; it runs them independently too, so their results
+are the same) from the replay's attitude source, and pickles the results (key-frame clouds dropped),
 the attitude and the ground truth. `fuse` runs onboard.fusion.fused on each
 cache and prints ATE, per-frame RPE (lags 1/3/10/30 frames), path ratio,
 sigma-1 coverage, posed share and resets, with the trackers alone for
@@ -35,13 +36,14 @@ import numpy as np
 
 from onboard.app.bench import replay_attitude
 from onboard.app.config import load_config
+from onboard.core.attitude_smoothing import without_widening
 from onboard.app.replay import TrackLog, evaluate_track, with_stated_ahrs
 from onboard.core.evaluation import ground_truth_at
 from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.filter import AnchoredFilter
 from onboard.fusion.fused import FusedTracker
 from onboard.fusion.params import FusionParams
-from onboard.fusion.registry import make_tracker
+from onboard.fusion.registry import fused_parts
 from sim_replay.tum import open_sequence
 
 TRACKERS = ("nislam", "fastorb")
@@ -66,12 +68,13 @@ def record(seq_dir: str, out: str, sets: list[str]) -> None:
     cfg = with_stated_ahrs(cfg, seq_dir)
     frames = list(seq.frames())
     results: dict[str, list] = {}
-    for name in TRACKERS:
-        tracker = make_tracker(name, seq.intrinsics, cfg)
+    part_attitude = without_widening(attitude)  # as FusedTracker.track gives its parts
+    for tracker in fused_parts(seq.intrinsics, cfg):  # built as the fused tracker builds them
         t0 = time.perf_counter()
-        results[name] = [dataclasses.replace(tracker.track(f, attitude), finished_keyframes=())
-                         for f in frames]
-        print(f"{seq_dir}: {name} {len(frames)} frames in {time.perf_counter() - t0:.0f} s",
+        results[tracker.name] = [
+            dataclasses.replace(tracker.track(f, part_attitude), finished_keyframes=())
+            for f in frames]
+        print(f"{seq_dir}: {tracker.name} {len(frames)} frames in {time.perf_counter() - t0:.0f} s",
               file=sys.stderr)
     with open(out, "wb") as fh:
         pickle.dump({"seq": str(seq_dir), "t_s": [f.t_s for f in frames], "attitude": attitude,

@@ -58,11 +58,10 @@ def _make_fastorb(intrinsics: CameraIntrinsics, cfg: TrackerSections, **override
     return FastOrbTracker(intrinsics, dataclasses.replace(cfg.fastorb, **overrides))
 
 
-def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
-    from onboard.fusion.fused import FusedTracker
-
-    # NI-SLAM first: its key-frame clouds make the map (onboard.fusion.fused).
-    params = getattr(cfg, "fusion", None) or FusionParams()
+def fused_parts(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> list[Tracker]:
+    """The fused tracker's parts, NI-SLAM first (its key-frame clouds make the
+    map, onboard.fusion.fused), as it builds them: also what
+    scripts/fusion_cache.py records."""
     # The filter clones a key's fused position at the frame that announces it
     # (onboard.fusion.fused) and NI-SLAM's own key positions never reach the
     # output, so its keys stay at the paper's frame (Eq. 17) whatever the setting.
@@ -73,7 +72,14 @@ def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
     # the flight: 14 MB a minute and a query slice past the frame interval
     # after 4 minutes of `nislam run` (docs/fusion.md, "A long flight").
     fastorb = _make_fastorb(intrinsics, cfg, loop_closure=False)
-    return FusedTracker([nislam, fastorb], params)
+    return [nislam, fastorb]
+
+
+def _make_fused(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> Tracker:
+    from onboard.fusion.fused import FusedTracker
+
+    params = getattr(cfg, "fusion", None) or FusionParams()
+    return FusedTracker(fused_parts(intrinsics, cfg), params)
 
 
 _REGISTRY: dict[str, Callable[[CameraIntrinsics, TrackerSections], Tracker]] = {
