@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from nislam_experiment import parser, setup  # noqa: E402
 
 import onboard.nislam.tracker as tracker_mod  # noqa: E402
+from sim_replay.budget import KeyTimes  # noqa: E402
 from onboard.nislam import correlation  # noqa: E402
 
 R = 12  # half window kept around each peak (cells), as correlation._LOBE_HALF_CELLS
@@ -89,14 +90,13 @@ def main() -> int:
 
     tracker_mod.find_peak = recording_find_peak
     tr = tracker_mod.NislamTracker(seq.intrinsics, params)
-    rows, key_t = [], {}
+    rows, key_t = [], KeyTimes()
     for i, frame in enumerate(seq.frames()):
         if args.frames and i >= args.frames:
             break
         calls.clear()
         r = tr.track(frame, att)
-        if r.new_keyframe:
-            key_t[r.keyframe_id] = r.t_s
+        key_t.add(r)
         match = [w for pk, w in calls if (pk.du_cells, pk.dv_cells) == r.shift_cells]
         if r.trusted and match and np.isfinite(r.psr):
             rows.append((r.t_s, key_t.get(r.reference_keyframe_id, np.nan), r.reference_keyframe_id,

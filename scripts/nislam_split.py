@@ -11,7 +11,10 @@ with NI-SLAM and splits the lag-1 translation error (docs/nislam-error-budget.md
     t = (-du s, -dv s, t_z), against the true motion since the key's frame in
     the key's true axes) along and across the direction the frame-to-frame
     rotation moves the content ("flow": rotation x mean depth), by flow;
-  - the error against the key per key axis (systematic; what new keys inherit).
+  - the error against the key per key axis (systematic; what new keys inherit);
+  - per key: its cell size, the rate it was made at, the matched cells' mean
+    depth, and its frames' same-key lateral (mm and cells) and axial error,
+    with its share of the same-key squared error.
 --set overrides [nislam] parameters (numbers or true/false).
 """
 
@@ -28,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from nislam_experiment import parser, rms_mm, setup  # noqa: E402
 
 import onboard.nislam.tracker as tracker_mod  # noqa: E402
+from sim_replay.budget import KeyTimes  # noqa: E402
 
 
 def main() -> int:
@@ -44,11 +48,10 @@ def main() -> int:
 
     tracker_mod.depth_translation = depth_translation
     tr = tracker_mod.NislamTracker(seq.intrinsics, params)
-    rows, key_t = [], {}
+    rows, key_t = [], KeyTimes()
     for frame in seq.frames():
         r = tr.track(frame, att)
-        if r.new_keyframe:
-            key_t[r.keyframe_id] = r.t_s
+        key_t.add(r)
         if r.trusted and depth_of.get("z") is not None:
             rows.append((r, key_t.get(r.reference_keyframe_id, np.nan), depth_of["z"]))
     gt = seq.groundtruth
@@ -96,7 +99,28 @@ def main() -> int:
         m = (fn >= lo) & (fn < hi)
         print(f"| {lo * 1e3:.0f}-{hi * 1e3:.0f} mm | {m.sum()} | {rms_mm(along[m]):.2f} | "
               f"{rms_mm(across[m]):.2f} | {rms_mm(de[m, 2]):.2f} |")
+    _per_key(ref[i], kt[i], z, np.array([r.res_m for r, _, _ in rows])[i],
+             np.array([r.psr for r, _, _ in rows])[i], de, sl)
     return 0
+
+
+def _per_key(ref: np.ndarray, kt: np.ndarray, z: np.ndarray, res: np.ndarray, psr: np.ndarray,
+             de: np.ndarray, sl: Slerp) -> None:
+    """The same-key steps by key: which keys carry the error, and at what
+    cell size, depth and rate of making."""
+    lat2 = np.sum(de[:, :2] ** 2, axis=1)
+    total = float(np.sum(lat2 + de[:, 2] ** 2))
+    print("| key | pairs | cell mm | made at deg/s | depth m | lateral mm | lateral cells | axial mm "
+          "| median PSR | share |\n|---|---|---|---|---|---|---|---|---|---|")
+    for k in np.unique(ref):
+        m = ref == k
+        t0 = float(kt[m][0])
+        lo, hi = max(t0 - 0.02, sl.times[0]), min(t0 + 0.02, sl.times[-1])
+        rate = np.degrees(np.linalg.norm((sl(lo).inv() * sl(hi)).as_rotvec()) / max(hi - lo, 1e-9))
+        lat = rms_mm(np.sqrt(lat2[m]))
+        print(f"| {k} | {m.sum()} | {res[m][0] * 1e3:.1f} | {rate:.0f} | {np.median(z[m]):.2f} | "
+              f"{lat:.2f} | {lat / (res[m][0] * 1e3):.2f} | {rms_mm(de[m, 2]):.2f} | "
+              f"{np.median(psr[m]):.0f} | {float(np.sum(lat2[m] + de[m, 2] ** 2)) / total:.2f} |")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from onboard.core.evaluation import evaluate, ground_truth_at
+from onboard.core.messages import TrackResult
 from onboard.core.trajectory import Trajectory
 from onboard.nislam.params import NislamParams
 from onboard.nislam.tracker import NislamTracker
@@ -63,6 +64,25 @@ def render_flight(scenario: str, camera: str, seconds: float, seed: int, work: P
     return out
 
 
+class KeyTimes(dict):
+    """Each NI-SLAM key's id -> the time of the frame it was made from, read
+    off the results in order: the frame that announces it (`new_keyframe`),
+    or the last trusted frame before one that no longer matched its key at
+    all (`keyframe_from_previous`)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._last_trusted_t: float | None = None
+
+    def add(self, r: TrackResult) -> None:
+        if r.keyframe_from_previous and self._last_trusted_t is not None:
+            self[r.reference_keyframe_id if r.trusted else r.keyframe_id] = self._last_trusted_t
+        if r.new_keyframe:
+            self[r.keyframe_id] = r.t_s
+        if r.trusted:
+            self._last_trusted_t = r.t_s
+
+
 def score_flight(
     seq_dir: Path, attitude: dict[str, Any] | None = None, nislam: dict[str, Any] | None = None,
     seed: int = 0, max_frames: int | None = None,
@@ -86,13 +106,12 @@ def score_flight(
     att, _ = attitude_for_replay(seq, errors, 0.2)
     tracker = NislamTracker(seq.intrinsics, params)
     rows = []
-    key_t: dict[int, float] = {}
+    key_t = KeyTimes()
     for k, frame in enumerate(seq.frames()):
         if max_frames is not None and k >= max_frames:
             break
         r = tracker.track(frame, att)
-        if r.new_keyframe:
-            key_t[r.keyframe_id] = r.t_s
+        key_t.add(r)
         if r.trusted:
             rows.append(r)
     t = np.array([r.t_s for r in rows])

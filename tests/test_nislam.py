@@ -537,3 +537,30 @@ def test_new_key_starts_from_the_last_firm_frame(scene, from_last_firm):
     assert all(r.reference_keyframe_id == 1 for r in results[k + 1:])
     for e in _errors_mm(results, poses):
         assert np.max(np.abs(e)) < POS_TOL_M * 1000
+
+
+def test_a_key_made_from_the_previous_frame_is_counted_and_timed(scene):
+    """A frame that no longer matches its key at all is matched against a key
+    made from the last trusted frame (inside track()): the result says so, so
+    a count of keys made and the time of each key's frame (what the error
+    budget measures the motion since) include it. Before, such a key was in
+    no count: `tum_fr1_rpy`'s 12 keys read 11, and its frames were left out
+    of the breakdown."""
+    from sim_replay.budget import KeyTimes
+
+    # 14 deg a frame: PSR 138 from one frame to the next, 97 over two, so with
+    # both thresholds at 120 frame 2 fails against key 0 but not against frame 1.
+    tracker = NislamTracker(INTR, _params(psr_lost=120.0, psr_keyframe=120.0))
+    poses = [(_rot(y=14.0 * k), np.zeros(3)) for k in range(3)]
+    results = _track_poses(tracker, scene, poses)
+    assert all(r.trusted for r in results)
+    last = results[-1]
+    assert last.keyframe_from_previous and not last.new_keyframe
+    assert last.reference_keyframe_id == last.keyframe_id == 1
+    assert sum(r.keyframes_added for r in results) == 2
+    times = KeyTimes()
+    for r in results:
+        times.add(r)
+    assert times == {0: results[0].t_s, 1: results[1].t_s}
+    for e in _errors_mm(results, poses):
+        assert np.max(np.abs(e)) < 2.0  # mm

@@ -140,11 +140,16 @@ class TrackResult:
     # (new_keyframe) starts a new key or a kept key is re-used instead: True
     # on the next result when the announced key was not made.
     keyframe_withdrawn: bool = False
+    # NI-SLAM: a key was made inside this track() from the previous trusted
+    # frame, because this frame no longer matched the old key at all; this
+    # frame is then matched against it. Its key frame is the previous one,
+    # not this (new_keyframe says that of a key made from this frame).
+    keyframe_from_previous: bool = False
 
     @property
     def keyframes_added(self) -> int:
         """What this result adds to a count of key frames made."""
-        return int(self.new_keyframe) - int(self.keyframe_withdrawn)
+        return int(self.new_keyframe) + int(self.keyframe_from_previous) - int(self.keyframe_withdrawn)
 
     @property
     def q_W_C_xyzw(self) -> np.ndarray | None:

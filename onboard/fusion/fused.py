@@ -457,7 +457,7 @@ class FusedTracker:
             tz_m=head.tz_m, res_m=head.res_m, rotation_residual_rad=head.rotation_residual_rad,
             attitude_offset_s=head.attitude_offset_s, matched_cells=head.matched_cells,
             finished_keyframes=clouds, keyframe_reused=head.keyframe_reused,
-            keyframe_withdrawn=head.keyframe_withdrawn,
+            keyframe_withdrawn=head.keyframe_withdrawn, keyframe_from_previous=head.keyframe_from_previous,
             contributors=contributors, left_out=left_out, displacement_cov=displacement,
         )
 

@@ -159,7 +159,8 @@ class NislamTracker:
                 key, outcome = found
                 reused = True
                 self._count_jump(outcome.p_W_m, frame.t_s)
-        if outcome is None and self._prev is not None and self._prev.t_s > key.t_s:
+        from_previous = outcome is None and self._prev is not None and self._prev.t_s > key.t_s
+        if from_previous:
             # The current frame no longer matches the key: make the last trusted
             # frame the key (it matched, so it overlaps both) and try again.
             finished += self._new_key_from(self._prev)
@@ -167,7 +168,9 @@ class NislamTracker:
             outcome = self._match(key, cloud, frame.t_s, r_g, attitude, t_att)
         if outcome is None:
             self._lost = True
-            return self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
+            return dataclasses.replace(
+                self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished)),
+                keyframe_from_previous=from_previous)
 
         if key.keyframe_id == reused_key and not reused:
             # The first frame on a key re-used after the last pose: its step
@@ -226,6 +229,7 @@ class NislamTracker:
             matched_cells=outcome.depth.matched,
             finished_keyframes=tuple(finished),
             keyframe_reused=reused or key.keyframe_id == reused_key,
+            keyframe_from_previous=from_previous,
             reference_keyframe_id=key.keyframe_id,
             reference_offset_m=outcome.p_W_m - key.p_W_m,
             attitude_var_m2=att_var,
