@@ -168,9 +168,8 @@ class NislamTracker:
             outcome = self._match(key, cloud, frame.t_s, r_g, attitude, t_att)
         if outcome is None:
             self._lost = True
-            return dataclasses.replace(
-                self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished)),
-                keyframe_from_previous=from_previous)
+            lost = self._lost_result(frame.t_s, "correlation peak too weak", tuple(finished))
+            return dataclasses.replace(lost, keyframe_from_previous=from_previous)
 
         if key.keyframe_id == reused_key and not reused:
             # The first frame on a key re-used after the last pose: its step
