@@ -14,7 +14,9 @@ with NI-SLAM and splits the lag-1 translation error (docs/nislam-error-budget.md
   - the error against the key per key axis (systematic; what new keys inherit);
   - per key: its cell size, the rate it was made at, the matched cells' mean
     depth, and its frames' same-key lateral (mm and cells) and axial error,
-    with its share of the same-key squared error.
+    with its share of the same-key squared error;
+  - with --set depth_tilt_fit=true: the tilt of the depth differences and how
+    much of it the rotation since the key, or the rates, explain.
 --set overrides [nislam] parameters (numbers or true/false).
 """
 
@@ -38,22 +40,24 @@ def main() -> int:
     ap = parser(__doc__.split("\n\n")[0])
     args = ap.parse_args()
     params, seq, att = setup(args)
-    depth_of = {}
+    depth_of, tilt_of = {}, {}
     original = tracker_mod.depth_translation
 
     def depth_translation(*a, **k):  # the matched cells' mean key depth, per frame
         fit = original(*a, **k)
         depth_of["z"] = None if fit is None else fit.z_mean_m
+        tilt_of["theta"] = None if fit is None else fit.theta_rad[:2]
         return fit
 
     tracker_mod.depth_translation = depth_translation
     tr = tracker_mod.NislamTracker(seq.intrinsics, params)
-    rows, key_t = [], KeyTimes()
+    rows, key_t, tilts = [], KeyTimes(), []
     for frame in seq.frames():
         r = tr.track(frame, att)
         key_t.add(r)
         if r.trusted and depth_of.get("z") is not None:
             rows.append((r, key_t.get(r.reference_keyframe_id, np.nan), depth_of["z"]))
+            tilts.append(tilt_of["theta"])
     gt = seq.groundtruth
     sl = Slerp(gt.t_s, Rotation.from_quat(gt.q_xyzw))
     t = np.array([r.t_s for r, _, _ in rows])
@@ -61,6 +65,7 @@ def main() -> int:
     ok = np.isfinite(kt) & (t >= gt.t_s[0]) & (t <= gt.t_s[-1]) & (kt >= gt.t_s[0])
     t, kt = t[ok], kt[ok]
     rows = [x for x, keep in zip(rows, ok) if keep]
+    tilts = [x for x, keep in zip(tilts, ok) if keep]
     ref = np.array([r.reference_keyframe_id for r, _, _ in rows])
 
     def pos(ts):
@@ -101,7 +106,30 @@ def main() -> int:
               f"{rms_mm(across[m]):.2f} | {rms_mm(de[m, 2]):.2f} |")
     _per_key(ref[i], kt[i], z, np.array([r.res_m for r, _, _ in rows])[i],
              np.array([r.psr for r, _, _ in rows])[i], de, sl)
+    if params.depth_tilt_fit:
+        _tilt(np.array(tilts), r_k.inv() * r_f, _rate(sl, kt), (r_k.inv() * r_f).apply(_rate(sl, t)))
     return 0
+
+
+def _rate(sl: Slerp, t: np.ndarray) -> np.ndarray:
+    """Body rate (rad/s, camera axes) over +-20 ms."""
+    lo, hi = np.maximum(t - 0.02, sl.times[0]), np.minimum(t + 0.02, sl.times[-1])
+    return (sl(lo).inv() * sl(hi)).as_rotvec() / np.maximum(hi - lo, 1e-9)[:, None]
+
+
+def _tilt(theta: np.ndarray, rel: Rotation, w_key: np.ndarray, w_frame: np.ndarray) -> None:
+    """With depth_tilt_fit: how much of the depth differences' tilt (a
+    residual rotation about the key's x, y) the rotation since the key and
+    the difference of the key's and the frame's rates explain (a linear fit)."""
+    print("tilt of the depth differences: " + " / ".join(
+        f"{np.degrees(np.sqrt(np.mean(theta[:, c] ** 2))):.2f}" for c in range(2)) + " deg RMS about x / y")
+    for name, x in (("rotation since the key", rel.as_rotvec()), ("rate difference", w_frame - w_key)):
+        a = np.c_[x, np.ones(len(x))]
+        for c in range(2):
+            coef = np.linalg.lstsq(a, theta[:, c], rcond=None)[0]
+            r2 = 1.0 - np.sum((theta[:, c] - a @ coef) ** 2) / np.sum((theta[:, c] - theta[:, c].mean()) ** 2)
+            print(f"  about {'xy'[c]}, by the {name}: R^2 {r2:.2f}, per rad (x, y, z) "
+                  + ", ".join(f"{v:+.4f}" for v in coef[:3]))
 
 
 def _per_key(ref: np.ndarray, kt: np.ndarray, z: np.ndarray, res: np.ndarray, psr: np.ndarray,

@@ -120,7 +120,7 @@ def bench(
             if len(results) < len(frames):
                 results.append(result)
             # (a re-use decided after the last pose is a plain match here)
-            kind = ("keyframe" if result.new_keyframe
+            kind = ("keyframe" if result.new_keyframe or result.keyframe_from_previous
                     else "reused" if result.keyframe_reused and not result.keyframe_withdrawn
                     else "plain")
             kind_ms[kind].append(dt_ms)
