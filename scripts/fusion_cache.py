@@ -36,8 +36,8 @@ import numpy as np
 
 from onboard.app.bench import replay_attitude
 from onboard.app.config import load_config
-from onboard.core.attitude_smoothing import without_widening
 from onboard.app.replay import TrackLog, evaluate_track, with_stated_ahrs
+from onboard.core.attitude_smoothing import without_widening
 from onboard.core.evaluation import ground_truth_at
 from onboard.fusion.coverage import sigma1_coverage
 from onboard.fusion.filter import AnchoredFilter

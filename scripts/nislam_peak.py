@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from nislam_experiment import parser, setup  # noqa: E402
 
 import onboard.nislam.tracker as tracker_mod  # noqa: E402
-from sim_replay.budget import KeyTimes  # noqa: E402
 from onboard.nislam import correlation  # noqa: E402
+from sim_replay.budget import KeyTimes  # noqa: E402
 
 R = 12  # half window kept around each peak (cells), as correlation._LOBE_HALF_CELLS
 YY, XX = np.mgrid[-R:R + 1, -R:R + 1]

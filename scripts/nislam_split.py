@@ -107,7 +107,8 @@ def main() -> int:
     _per_key(ref[i], kt[i], z, np.array([r.res_m for r, _, _ in rows])[i],
              np.array([r.psr for r, _, _ in rows])[i], de, sl)
     if params.depth_tilt_fit:
-        _tilt(np.array(tilts), r_k.inv() * r_f, _rate(sl, kt), (r_k.inv() * r_f).apply(_rate(sl, t)))
+        rel = r_k.inv() * r_f  # the rotation since the key, key axes
+        _tilt(np.array(tilts), rel, _rate(sl, kt), rel.apply(_rate(sl, t)))
     return 0
 
 
@@ -142,9 +143,7 @@ def _per_key(ref: np.ndarray, kt: np.ndarray, z: np.ndarray, res: np.ndarray, ps
           "| median PSR | share |\n|---|---|---|---|---|---|---|---|---|---|")
     for k in np.unique(ref):
         m = ref == k
-        t0 = float(kt[m][0])
-        lo, hi = max(t0 - 0.02, sl.times[0]), min(t0 + 0.02, sl.times[-1])
-        rate = np.degrees(np.linalg.norm((sl(lo).inv() * sl(hi)).as_rotvec()) / max(hi - lo, 1e-9))
+        rate = np.degrees(np.linalg.norm(_rate(sl, kt[m][:1])))
         lat = rms_mm(np.sqrt(lat2[m]))
         print(f"| {k} | {m.sum()} | {res[m][0] * 1e3:.1f} | {rate:.0f} | {np.median(z[m]):.2f} | "
               f"{lat:.2f} | {lat / (res[m][0] * 1e3):.2f} | {rms_mm(de[m, 2]):.2f} | "
