@@ -96,7 +96,8 @@ class AttitudeSeries:
         return quat_slerp(self._q_xyzw[i - 1], self._q_xyzw[i], (t_s - t0) / (t1 - t0))
 
     def rotations_at(self, t_s) -> tuple[np.ndarray, np.ndarray]:
-        """Vectorised `rotation_at`: (R_W_C (M,3,3), valid (M,) bool); invalid rows are NaN."""
+        """The samples slerped at `t_s`, vectorised: `rotation_at` without the
+        local fit. (R_W_C (M,3,3), valid (M,) bool); invalid rows are NaN."""
         q, valid = _interpolate_q(self.trajectory, t_s, self.max_gap_s)
         r = np.full((len(valid), 3, 3), np.nan)
         if valid.any():
@@ -209,9 +210,13 @@ def attitude_for_replay(
     """The attitude a replay feeds the tracker, and a label saying where it came from.
 
     From `attitude.txt` (R_W_B at the AHRS's own stamps, turned into R_W_C with
-    the camera mount) when present; else from ground truth sampled once per
-    frame time (the camera's own orientation, mount = identity, as the NI-SLAM
-    authors did on TUM). The error model is applied in the body frame.
+    the camera mount) when present; else from ground truth (the camera's own
+    orientation, mount = identity, as the NI-SLAM authors did on TUM) at its
+    own stamps: the motion capture is the attitude sensor, and it is played at
+    its own rate as the service's replay plays it (sources.open_replay) and as
+    a live AHRS arrives, so the same local fit takes out its white noise
+    (docs/nislam-error-budget.md, "The motion capture's own rate"). The error
+    model is applied in the body frame, per sample.
     Its white noise (`recorded_noise_deg`, with `ahrs_noise_deg` for a real
     AHRS's recording) and what the model adds, in quadrature: the local fit
     widens its window up to `smoothing_max_s` against it
@@ -225,12 +230,8 @@ def attitude_for_replay(
             measured = Trajectory(measured.t_s, measured.p_xyz_m, q_w_c)
         source = "attitude.txt"
     elif seq.groundtruth is not None:
-        measured = apply_error_model(seq.groundtruth, seq.frame_times_s, model, max_gap_s)
-        dropped = len(seq.frame_times_s) - len(measured)
-        if dropped:
-            log.info("%s: %d of %d frames have no ground-truth attitude", seq.path, dropped,
-                     len(seq.frame_times_s))
-        source = "groundtruth.txt at frame times (camera orientation, mount identity)"
+        measured = apply_error_model(seq.groundtruth, seq.groundtruth.t_s, model, max_gap_s)
+        source = "groundtruth.txt (camera orientation, mount identity)"
     else:
         raise NislamError(
             f"{seq.path} has neither attitude.txt nor groundtruth.txt: no attitude to replay"
