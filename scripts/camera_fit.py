@@ -69,9 +69,9 @@ def fit_depth(seq: Sequence, frames: range, step_px: int = 12) -> None:
     depth, pose = {}, {}
     for i in sorted({i + lag for i in frames for lag in (0, 3, 6, 10, 15)} & set(range(len(seq)))):
         f = seq.read_frame(i)
-        if f is not None and f.depth_t_s is not None:
+        if f is not None:
             depth[i] = f.depth_m
-            pose[i] = poses.at(f.depth_t_s)
+            pose[i] = poses.at(f.t_s if f.depth_t_s is None else f.depth_t_s)
     h, w = next(iter(depth.values())).shape
     vv, uu = _grid(h, w, step_px)
     pairs = []
@@ -86,7 +86,8 @@ def fit_depth(seq: Sequence, frames: range, step_px: int = 12) -> None:
                 continue
             z = depth[i][vv.astype(int), uu.astype(int)].astype(np.float64)
             s = (z > 0.4) & (z < 4.0)
-            pairs.append((j, uu[s], vv[s], z[s], r_ji, r_j[0].T @ (p_i[0] - p_j[0])))
+            if s.sum() >= 50:
+                pairs.append((j, uu[s], vv[s], z[s], r_ji, r_j[0].T @ (p_i[0] - p_j[0])))
 
     def residuals(x: np.ndarray, strict: bool = False) -> np.ndarray:
         k, m, c = x[0], Rotation.from_rotvec(x[1:4]).as_matrix(), x[4:10]
@@ -126,10 +127,10 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
     gray, depth, t_colour, t_depth = {}, {}, {}, {}
     for i in sorted({i + lag for i in frames for lag in (0, 4, 8, 12)} & set(range(len(seq)))):
         f = seq.read_frame(i)
-        if f is not None and f.depth_t_s is not None:
+        if f is not None:
             g = cv2.cvtColor(f.bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
             gray[i], depth[i] = cv2.GaussianBlur(g, (0, 0), 1.5), f.depth_m
-            t_colour[i], t_depth[i] = f.t_s, f.depth_t_s
+            t_colour[i], t_depth[i] = f.t_s, f.t_s if f.depth_t_s is None else f.depth_t_s
     h, w = next(iter(gray.values())).shape
 
     def colour_px(x_w: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -158,7 +159,8 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
             ok = (z_j > 0.3) & (u_j > 20) & (u_j < w - 20) & (v_j > 20) & (v_j < h - 20)
             seen = depth[j][np.clip(v_j, 0, h - 1).astype(int), np.clip(u_j, 0, w - 1).astype(int)]
             ok &= np.abs(seen - z_j) < 0.03 * z_j  # not occluded in j
-            pairs.append((i, j, u_i[ok], v_i[ok], u_j[ok], v_j[ok]))
+            if ok.sum() >= 50:
+                pairs.append((i, j, u_i[ok], v_i[ok], u_j[ok], v_j[ok]))
 
     def cost(x: np.ndarray, sel: list) -> float:
         dx, dy, phi_deg, scale_pct = x
