@@ -27,25 +27,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.optimize import least_squares, minimize
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sim_replay.tum import Sequence, open_sequence  # noqa: E402
 
 
-class Poses:
-    """Ground-truth camera poses at any time inside the recording (slerp, linear)."""
-
-    def __init__(self, seq: Sequence) -> None:
-        gt = seq.groundtruth
-        self.t_s, self.p_m = gt.t_s, gt.p_xyz_m
-        self._slerp = Slerp(gt.t_s, Rotation.from_quat(gt.q_xyzw))
-
-    def at(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t = np.clip(np.atleast_1d(t_s), self.t_s[0], self.t_s[-1])
-        p = np.stack([np.interp(t, self.t_s, self.p_m[:, k]) for k in range(3)], -1)
-        return self._slerp(t).as_matrix(), p
+def _pose_at(seq: Sequence, t_s) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth (R_W_C (M,3,3), p_W (M,3)) at `t_s` (Sequence.groundtruth_at:
+    slerp and linear, never extrapolated); NaN where there is none."""
+    p, q, valid = seq.groundtruth_at(np.atleast_1d(np.asarray(t_s, np.float64)))
+    r = np.full((len(valid), 3, 3), np.nan)
+    if valid.any():
+        r[valid] = Rotation.from_quat(q[valid]).as_matrix()
+    return r, p
 
 
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -65,13 +61,15 @@ def _phi(xn: np.ndarray, yn: np.ndarray) -> np.ndarray:
 
 
 def fit_depth(seq: Sequence, frames: range, step_px: int = 12) -> None:
-    K, poses = seq.intrinsics, Poses(seq)
+    K = seq.intrinsics
     depth, pose = {}, {}
     for i in sorted({i + lag for i in frames for lag in (0, 3, 6, 10, 15)} & set(range(len(seq)))):
         f = seq.read_frame(i)
-        if f is not None:
-            depth[i] = f.depth_m
-            pose[i] = poses.at(f.t_s if f.depth_t_s is None else f.depth_t_s)
+        if f is None:
+            continue
+        r, p = _pose_at(seq, f.t_s if f.depth_t_s is None else f.depth_t_s)
+        if np.isfinite(r).all():
+            depth[i], pose[i] = f.depth_m, (r, p)
     h, w = next(iter(depth.values())).shape
     vv, uu = _grid(h, w, step_px)
     pairs = []
@@ -123,7 +121,7 @@ def fit_depth(seq: Sequence, frames: range, step_px: int = 12) -> None:
 
 
 def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
-    K, poses, readout_s = seq.intrinsics, Poses(seq), seq.camera.readout_s
+    K, readout_s = seq.intrinsics, seq.camera.readout_s
     gray, depth, t_colour, t_depth = {}, {}, {}, {}
     for i in sorted({i + lag for i in frames for lag in (0, 4, 8, 12)} & set(range(len(seq)))):
         f = seq.read_frame(i)
@@ -134,11 +132,11 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
     h, w = next(iter(gray.values())).shape
 
     def colour_px(x_w: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        r, p = poses.at(np.full(len(x_w), t_colour[i]))
+        r, p = _pose_at(seq, np.full(len(x_w), t_colour[i]))
         for _ in range(2):  # the row's own time
             x_c = np.einsum("nji,nj->ni", r, x_w - p)
             u, v = K.cx + K.fx * x_c[:, 0] / x_c[:, 2], K.cy + K.fy * x_c[:, 1] / x_c[:, 2]
-            r, p = poses.at(t_colour[i] + readout_s * (np.clip(v, 0, h) / h - 0.5))
+            r, p = _pose_at(seq, t_colour[i] + readout_s * (np.clip(v, 0, h) / h - 0.5))
         return u, v, x_c[:, 2]
 
     vv, uu = _grid(h, w, step_px)
@@ -148,7 +146,9 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
             continue
         z = depth[i][vv.astype(int), uu.astype(int)].astype(np.float64)
         s = (z > 0.4) & (z < 3.5)
-        r_d, p_d = poses.at(t_depth[i])
+        r_d, p_d = _pose_at(seq, t_depth[i])
+        if not np.isfinite(r_d).all():
+            continue
         x_c = np.stack([(uu[s] - K.cx) / K.fx * z[s], (vv[s] - K.cy) / K.fy * z[s], z[s]], -1)
         x_w = x_c @ r_d[0].T + p_d[0]
         u_i, v_i, _ = colour_px(x_w, i)
@@ -156,7 +156,7 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
             if j not in gray:
                 continue
             u_j, v_j, z_j = colour_px(x_w, j)
-            ok = (z_j > 0.3) & (u_j > 20) & (u_j < w - 20) & (v_j > 20) & (v_j < h - 20)
+            ok = np.isfinite(u_i) & (z_j > 0.3) & (u_j > 20) & (u_j < w - 20) & (v_j > 20) & (v_j < h - 20)
             seen = depth[j][np.clip(v_j, 0, h - 1).astype(int), np.clip(u_j, 0, w - 1).astype(int)]
             ok &= np.abs(seen - z_j) < 0.03 * z_j  # not occluded in j
             if ok.sum() >= 50:

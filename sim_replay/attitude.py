@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import bisect
 import json
-import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,8 +22,6 @@ from onboard.core.attitude_smoothing import DEFAULT_HALF_S, DEFAULT_MAX_HALF_S, 
 from onboard.core.rotations import quat_slerp, quat_to_matrix
 from onboard.core.trajectory import Trajectory
 from sim_replay.tum import Sequence
-
-log = logging.getLogger(__name__)
 
 DEFAULT_MAX_GAP_S = 0.2  # same rule as ground truth: bridge gaps up to 200 ms, never extrapolate
 _GAP_EPS_S = 1e-9  # the tolerance Trajectory.interpolate uses, so both paths agree
