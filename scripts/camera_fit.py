@@ -4,6 +4,7 @@ recorded camera's geometry says against its ground truth").
 
     python scripts/camera_fit.py SEQ_DIR depth  [--first A] [--last B]
     python scripts/camera_fit.py SEQ_DIR colour [--first A] [--last B]
+    python scripts/camera_fit.py SEQ_DIR range  [--first A] [--last B] [--lag-ms X]
 
 depth: frame i's depth pixels, moved by the ground-truth pose from i to j (at
 the depths' instants), against frame j's depth where they land (pairs 3-15
@@ -16,6 +17,13 @@ each colour row seen at its own time (the camera model's readout). Fits the
 map from a depth pixel p to its colour pixel, c + s R(phi) (p - c) + d about
 the principal point c, by the mean absolute gray difference (Nelder-Mead), on
 the even and the odd pairs apart.
+range: no fit; how far the depth agrees with itself against the ground truth,
+by range. Frame i's depth pixels moved by the ground-truth pose to frame j and
+compared with j's depth there (pairs 3-25 frames apart), the median residual
+per range band and per rotation between the two views; then, per pair, the far
+band's median residual in 1/z (the disparity domain, x f B for pixels) against
+the rotation and the body rates at both frames (R^2 of a linear fit).
+`--lag-ms` moves every depth instant (the camera model's lag plus this).
 """
 
 from __future__ import annotations
@@ -120,6 +128,96 @@ def fit_depth(seq: Sequence, frames: range, step_px: int = 12) -> None:
           f"depth c (1, xn, yn, xn^2, yn^2, xn yn) {np.round(res.x[4:], 4)}")
 
 
+RANGE_BANDS_M = ((0.3, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 3.0), (3.0, 4.0))
+FAR_M = (2.5, 4.0)
+
+
+def _body_rate_deg_s(seq: Sequence, t_s: float, half_s: float = 0.02) -> np.ndarray:
+    """The ground truth's body rate at `t_s` (deg/s, camera axes), over +-half_s;
+    NaN where the ground truth does not cover both ends."""
+    r, _ = _pose_at(seq, [t_s - half_s, t_s + half_s])
+    if not np.isfinite(r).all():
+        return np.full(3, np.nan)
+    return np.degrees(Rotation.from_matrix(r[0].T @ r[1]).as_rotvec()) / (2 * half_s)
+
+
+def _r2(y: np.ndarray, x: np.ndarray) -> float:
+    """R^2 of the least-squares line (plane) of y on the columns of x."""
+    a = np.c_[np.ones(len(y)), x]
+    e = y - a @ np.linalg.lstsq(a, y, rcond=None)[0]
+    return float(1.0 - e.var() / y.var())
+
+
+def depth_by_range(seq: Sequence, frames: range, lag_s: float = 0.0, step_px: int = 4) -> None:
+    """The `range` report (module doc), over pairs starting at `frames`."""
+    K = seq.intrinsics
+    h, w = seq.camera.height, seq.camera.width
+    vv, uu = _grid(h, w, step_px)
+    views: dict[int, tuple | None] = {}
+
+    def view(i: int) -> tuple | None:
+        """(depth, its instant, R_W_C, p_W) of frame i; None: no frame or no pose."""
+        if i not in views:
+            f = seq.read_frame(i)
+            views[i] = None
+            if f is not None:
+                t = (f.t_s if f.depth_t_s is None else f.depth_t_s) + lag_s
+                r, p = _pose_at(seq, t)
+                if np.isfinite(r).all():
+                    views[i] = (f.depth_m, t, r[0], p[0])
+        return views[i]
+
+    rows, res, ranges, angles = [], [], [], []
+    for i in frames:
+        for j in (i + 3, i + 6, i + 10, i + 15, i + 25):
+            if j >= len(seq) or view(i) is None or view(j) is None:
+                continue
+            (d_i, t_i, r_i, p_i), (d_j, t_j, r_j, p_j) = view(i), view(j)
+            z = d_i[vv.astype(int), uu.astype(int)].astype(np.float64)
+            s = z > 0.3
+            x = np.stack([(uu[s] - K.cx) / K.fx * z[s], (vv[s] - K.cy) / K.fy * z[s], z[s]])
+            q = r_j.T @ (r_i @ x + (p_i - p_j)[:, None])
+            u_j = np.round(K.cx + K.fx * q[0] / q[2]).astype(int)
+            v_j = np.round(K.cy + K.fy * q[1] / q[2]).astype(int)
+            ok = (q[2] > 0.3) & (u_j >= 0) & (u_j < w) & (v_j >= 0) & (v_j < h)
+            seen = np.zeros(len(ok))
+            seen[ok] = d_j[v_j[ok], u_j[ok]]
+            ok &= (seen > 0.3) & (np.abs(seen - q[2]) < 0.3 * q[2])  # the same surface
+            angle = np.degrees(np.linalg.norm(Rotation.from_matrix(r_i.T @ r_j).as_rotvec()))
+            res.append(seen[ok] - q[2][ok])
+            ranges.append(q[2][ok])
+            angles.append(np.full(int(ok.sum()), angle))
+            far = ok & (q[2] >= FAR_M[0]) & (q[2] < FAR_M[1])
+            if far.sum() >= 200:
+                rows.append([np.median(1.0 / q[2][far] - 1.0 / seen[far]), angle,
+                             *_body_rate_deg_s(seq, t_i), *_body_rate_deg_s(seq, t_j)])
+    if not res:
+        print("no pair of frames with depth and ground truth")
+        return
+    res, ranges, angles = np.concatenate(res), np.concatenate(ranges), np.concatenate(angles)
+    print(f"depth instants moved by {lag_s * 1e3:+.0f} ms; median residual (measured - "
+          "predicted from the other view, mm) and count per range band:")
+    for lo, hi in ((0, 10), (10, 20), (20, 40)):
+        sel = (angles >= lo) & (angles < hi)
+        cells = []
+        for z0, z1 in RANGE_BANDS_M:
+            b = sel & (ranges >= z0) & (ranges < z1)
+            med_mm = np.median(res[b]) * 1e3 if b.any() else np.nan
+            cells.append(f"{z0:.1f}-{z1:.1f} m {med_mm:+6.1f} ({int(b.sum())})")
+        print(f"  views {lo}-{hi} deg apart: " + " | ".join(cells))
+    a = np.array(rows).reshape(-1, 8)
+    a = a[np.isfinite(a).all(axis=1)]
+    if len(a) < 10:
+        print(f"{len(a)} pairs with far content ({FAR_M[0]}-{FAR_M[1]} m): too few to regress")
+        return
+    y = a[:, 0]
+    print(f"{len(a)} pairs with far content ({FAR_M[0]}-{FAR_M[1]} m): median 1/z residual "
+          f"{np.median(y):+.4f} 1/m, RMS {np.sqrt(np.mean(y ** 2)):.4f} 1/m (x f B for pixels)")
+    print(f"  R^2 on the rotation between the views {_r2(y, a[:, 1:2]):.2f}; on the body rates at "
+          f"both frames {_r2(y, a[:, 2:8]):.2f}; on their difference "
+          f"{_r2(y, a[:, 5:8] - a[:, 2:5]):.2f}")
+
+
 def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
     K, readout_s = seq.intrinsics, seq.camera.readout_s
     gray, depth, t_colour, t_depth = {}, {}, {}, {}
@@ -156,7 +254,8 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
             if j not in gray:
                 continue
             u_j, v_j, z_j = colour_px(x_w, j)
-            ok = np.isfinite(u_i) & (z_j > 0.3) & (u_j > 20) & (u_j < w - 20) & (v_j > 20) & (v_j < h - 20)
+            ok = (np.isfinite(u_i) & (z_j > 0.3) & (u_j > 20) & (u_j < w - 20) & (v_j > 20)
+                  & (v_j < h - 20))
             seen = depth[j][np.clip(v_j, 0, h - 1).astype(int), np.clip(u_j, 0, w - 1).astype(int)]
             ok &= np.abs(seen - z_j) < 0.03 * z_j  # not occluded in j
             if ok.sum() >= 50:
@@ -196,9 +295,10 @@ def fit_colour(seq: Sequence, frames: range, step_px: int = 8) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("seq")
-    ap.add_argument("what", choices=("depth", "colour"))
+    ap.add_argument("what", choices=("depth", "colour", "range"))
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--last", type=int, default=None, help="last frame a pair starts at")
+    ap.add_argument("--lag-ms", type=float, default=0.0, help="range: move the depth instants")
     a = ap.parse_args()
     seq = open_sequence(a.seq)
     if seq.groundtruth is None:
@@ -207,6 +307,8 @@ def main() -> int:
     last = len(seq) - 1 if a.last is None else min(a.last, len(seq) - 1)
     if a.what == "depth":
         fit_depth(seq, range(a.first, last + 1, 6))
+    elif a.what == "range":
+        depth_by_range(seq, range(a.first, last + 1, 4), a.lag_ms * 1e-3)
     else:
         fit_colour(seq, range(a.first, last + 1, 4))
     return 0
