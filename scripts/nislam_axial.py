@@ -125,8 +125,8 @@ def estimate(kd, km, kg, cd, cm, cg, u, v, p, how="weighted", step=2):
 VARIANTS = {
     "tracker (weighted, carry, peak)": ("peak", "ref", "weighted", 2),
     "true shift": ("true", "ref", "weighted", 2),
-    "key as projected (no Eq. 19)": ("peak", "raw", "weighted", 2),
-    "key as projected, true shift": ("true", "raw", "weighted", 2),
+    "key refined (Eq. 19)": ("peak", "refined", "weighted", 2),
+    "key refined, true shift": ("true", "refined", "weighted", 2),
     "plain mean, carry": ("peak", "ref", "mean", 2),
     "plain mean, carry, true shift": ("true", "ref", "mean", 2),
     "plain mean, no carry": ("peak", "ref", "nocarry", 2),
@@ -181,9 +181,11 @@ def main() -> int:
         ut, vt = -t_true[0] / s, -t_true[1] / s
         est = {}
         for name, (shift, kdep, how, step) in variants.items():
-            kd = key.depth_ref if kdep == "ref" else key.slot.depth_m
+            # "ref": what the tracker compares with (the key as projected, Key.match_depth)
+            kd = key.match_depth if kdep == "ref" else key.depth_ref
+            kg = key.match_gray if kdep == "ref" else key.gray_ref
             su, sv = (u, v) if shift == "peak" else (ut, vt)
-            est[name] = estimate(kd, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray,
+            est[name] = estimate(kd, key.mask0, kg, img.depth_m, img.mask, img.gray,
                                  su, sv, params, how, step)
         rows.append((key.keyframe_id, t_true[2], fit.tz_m, est, (u - ut) * s, (v - vt) * s, s))
         del key, img

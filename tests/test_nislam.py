@@ -208,6 +208,27 @@ def test_a_key_and_its_frames_share_one_pixel_step(scene, spacing, stride):
         assert np.max(np.abs(r.p_W_m - c)) < POS_TOL_M
 
 
+def test_eq18_compares_with_the_key_at_every_pixel_as_projected(scene):
+    """`key_depth_stride = 1` (default): the key frame is projected again from
+    every pixel for Eq. 18, while its filter and its frames keep every 2nd
+    pixel. Eq. 18's key images are that projection, untouched by Eq. 19's
+    refinement (which builds the map's images from the frames), and they
+    fill more cells than the key's own projection."""
+    tracker = NislamTracker(INTR, _params(pixel_stride=2, psr_refine=0.0))
+    poses = [(np.eye(3), np.array([0.004 * k, 0.0, 0.006 * k])) for k in range(4)]
+    key_made = _track_poses(tracker, scene, poses[:1])
+    key = tracker._key
+    fine = key.match_depth.copy()
+    results = key_made + _track_poses(tracker, scene, poses[1:], t0=1 / 30)
+    assert all(r.trusted for r in results) and tracker._key is key and key.stride == 2
+    for r, (_, c) in zip(results, poses):
+        assert np.max(np.abs(r.p_W_m - c)) < POS_TOL_M
+    tracker.finish_frame()  # the last frame's refinement
+    assert np.max(key.count) >= 4.0  # Eq. 19 took every frame in: the map's images ...
+    assert np.array_equal(key.match_depth, fine)  # ... and left Eq. 18's as projected
+    assert np.count_nonzero(key.mask0) > 1.3 * np.count_nonzero(key.img.mask)
+
+
 def _key_frame_index(results, k):
     """Index of the frame that is the key frame for frame k (the last frame
     before k flagged new_keyframe)."""

@@ -117,7 +117,7 @@ def _view(z_m: float, seed: int, tz: float):
     gray = np.full(shape, 0.5, np.float32)
     kd = ((z_m + rng.normal(0.0, sd, shape)) * km).astype(np.float32)
     cd = ((z_m - tz + rng.normal(0.0, sd, shape)) * cm).astype(np.float32)
-    key = SimpleNamespace(depth_ref=kd, mask0=km, gray_ref=gray,
+    key = SimpleNamespace(match_depth=kd, mask0=km, match_gray=gray,
                           img=SimpleNamespace(res_m=0.01))
     return key, AxonometricImage(gray, cd, cm, 0.01)
 

@@ -177,6 +177,7 @@ RULES: dict[str, Range | Choice | Check] = {
     "nislam.hist_sample": POSITIVE,
     "nislam.pixel_stride": POSITIVE,
     "nislam.max_point_spacing_cells": NON_NEGATIVE,
+    "nislam.key_depth_stride": NON_NEGATIVE,
     "nislam.min_matched_cells": POSITIVE,
     "nislam.psr_exclude_cells": NON_NEGATIVE,
     # shares and fractions

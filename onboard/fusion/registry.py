@@ -65,7 +65,13 @@ def fused_parts(intrinsics: CameraIntrinsics, cfg: TrackerSections) -> list[Trac
     # The filter clones a key's fused position at the frame that announces it
     # (onboard.fusion.fused) and NI-SLAM's own key positions never reach the
     # output, so its keys stay at the paper's frame (Eq. 17) whatever the setting.
-    nislam = _make_nislam(intrinsics, cfg, key_from_last_firm_frame=False)
+    # Its Eq. 18 stays the paper's too (the refined key, every 2nd pixel): its
+    # covariance model was set on that, and with the key at every pixel the
+    # fused ATE rose on `corridor` (4.1 -> 8.5 mm) and `blank-turn` (6.7 ->
+    # 8.7 mm) while NI-SLAM alone gained (docs/nislam-error-budget.md, "A key's
+    # depth from every pixel").
+    nislam = _make_nislam(intrinsics, cfg, key_from_last_firm_frame=False, key_depth_stride=0,
+                          depth_front_mean_m=0.0)
     # The filter closes its loops on NI-SLAM's key clones. FastORB's own loop
     # closing would move its world under the filter (a correction is never
     # motion: docs/fusion.md), and its records of every key frame grow with

@@ -52,7 +52,7 @@ def depth_translation(
 
     def sums_at(step: int) -> np.ndarray:
         return kern.depth_difference_sums(
-            key.depth_ref, key.mask0, key.gray_ref, img.depth_m, img.mask, img.gray, du, dv,
+            key.match_depth, key.mask0, key.match_gray, img.depth_m, img.mask, img.gray, du, dv,
             p.gate_gray, p.gate_depth_m, s, p.min_matched_cells // 16, frac[0], frac[1],
             p.depth_sigma_rel, p.depth_sigma_floor_m, p.depth_subcell, step, p.depth_gate_sigmas,
             p.depth_slope_limited,

@@ -16,8 +16,9 @@ from onboard.nislam.projection import AxonometricImage
 
 @dataclass
 class KeySlot:
-    """The memory of one key frame: its projection, the refined images and
-    the filter's spectra (6 MB at 480 x 360), allocated once by `KeyStore`."""
+    """The memory of one key frame: its projection, the images Eq. 18 compares
+    frames with, the refined images and the filter's spectra (8 MB at
+    480 x 360), allocated once by `KeyStore`."""
 
     gray: np.ndarray
     depth_m: np.ndarray
@@ -26,6 +27,9 @@ class KeySlot:
     gray_ref: np.ndarray
     depth_ref: np.ndarray
     count: np.ndarray
+    gray_fine: np.ndarray  # the key frame at `key_depth_stride`, as projected (Eq. 18)
+    depth_fine: np.ndarray
+    mask_fine: np.ndarray
     spectra: tuple[np.ndarray, np.ndarray]  # z_hat, alpha_hat (CCS-packed, onboard.nislam.correlation)
 
     @classmethod
@@ -40,20 +44,26 @@ class KeySlot:
             return resident(np.empty(shape, np.float32))
 
         return cls(grid(), grid(), grid(), resident(np.empty((h, w, 3), np.uint8)), grid(),
-                   grid(), grid(), (grid(), grid()))
+                   grid(), grid(), grid(), grid(), grid(), (grid(), grid()))
 
-    def hold(self, img: AxonometricImage) -> AxonometricImage:
-        """`img` copied into this slot; the refined images start from it."""
+    def hold(self, img: AxonometricImage, fine: AxonometricImage | None = None) -> AxonometricImage:
+        """`img` copied into this slot, and `fine` (the key frame at a finer
+        pixel step; None: `img`): Eq. 18's images, the refined ones' start and
+        the map's colour."""
+        fine = img if fine is None else fine
         np.copyto(self.gray, img.gray)
         np.copyto(self.depth_m, img.depth_m)
         np.copyto(self.mask, img.mask)
-        if img.bgr is not None:
-            np.copyto(self.bgr, img.bgr)
+        if fine.bgr is not None:
+            np.copyto(self.bgr, fine.bgr)
         else:
             self.bgr.fill(0)  # not the colour of the slot's previous key
-        np.copyto(self.gray_ref, img.gray)
-        np.copyto(self.depth_ref, img.depth_m)
-        np.copyto(self.count, img.mask)
+        np.copyto(self.gray_ref, fine.gray)
+        np.copyto(self.depth_ref, fine.depth_m)
+        np.copyto(self.count, fine.mask)
+        np.copyto(self.gray_fine, fine.gray)
+        np.copyto(self.depth_fine, fine.depth_m)
+        np.copyto(self.mask_fine, fine.mask)
         return AxonometricImage(self.gray, self.depth_m, self.mask, img.res_m, self.bgr)
 
 
@@ -93,15 +103,32 @@ class Key:
     coverage: list[float] = field(default_factory=list)  # last two frames' share of the grid covered
     r_geom: np.ndarray | None = None  # the geometry's rotation from the attitude at t_s (Prev's)
     stride: int = 2  # pixel step of the cloud it was made from; its frames' clouds take the same
+    # Eq. 18 against the key frame at `key_depth_stride` as projected (True), or
+    # against the refined images (False: `key_depth_stride = 0`, the paper's)
+    as_projected: bool = False
+
+    @property
+    def match_gray(self) -> np.ndarray:
+        """The gray Eq. 18 gates a frame's cells against: with `as_projected`
+        the key frame at `key_depth_stride` as projected, not the refined one
+        (Eq. 19 carries each frame's depth in by that frame's own t_z, so a
+        key refined from its frames follows their errors; docs/nislam-error-
+        budget.md, "A key's depth from every pixel"); else the refined one."""
+        return self.slot.gray_fine if self.as_projected else self.slot.gray_ref
+
+    @property
+    def match_depth(self) -> np.ndarray:
+        """The depth Eq. 18 compares a frame's cells with (as match_gray)."""
+        return self.slot.depth_fine if self.as_projected else self.slot.depth_ref
 
     @property
     def gray_ref(self) -> np.ndarray:
-        """Refined gray (count-weighted mean, Eq. 19a)."""
+        """Refined gray (count-weighted mean, Eq. 19a): the map's."""
         return self.slot.gray_ref
 
     @property
     def depth_ref(self) -> np.ndarray:
-        """Refined depth."""
+        """Refined depth (Eq. 19b): the map's."""
         return self.slot.depth_ref
 
     @property
@@ -111,8 +138,8 @@ class Key:
 
     @property
     def mask0(self) -> np.ndarray:
-        """Original key mask W_0."""
-        return self.slot.mask
+        """Original key mask W_0 of match_depth."""
+        return self.slot.mask_fine if self.as_projected else self.slot.mask
 
     def predicted_shift(self, t_s: float) -> tuple[float, float]:
         """Constant-velocity prediction of the shift at `t_s` against this key,

@@ -22,6 +22,14 @@ class NislamParams:
     # ... but a key (and its frames) takes a finer step where its points would
     # land further apart than this many of its cells (sampling.stride_for_grid); 0 = never
     max_point_spacing_cells: float = 0.0
+    # The pixel step of the key frame's cloud that Eq. 18's key images are
+    # projected from (and the map's, which Eq. 19 refines). The key's filter
+    # and layers keep its own step, what its frames look like, so the PSR, the
+    # keys and the calibration do not change. At every 2nd pixel a far key
+    # holds a point in one cell of two to four and Eq. 18 met the frame's
+    # points in few cells (docs/nislam-error-budget.md, "A key's depth from
+    # every pixel"); 0 = the key's step.
+    key_depth_stride: int = 1
     kernel_sigma: float = 0.2
     lam: float = 0.1
     label_sigma_cells: float = 1.0
@@ -65,8 +73,9 @@ class NislamParams:
     # A cell's depth: the mean of the points within this + 3 depth_sigma_rel z^2
     # of its nearest (the front surface); 0 = the nearest point's, biased
     # toward the camera under depth noise by a share of sigma that follows
-    # the points per cell (docs/nislam-error-budget.md, "The axial part, split")
-    depth_front_mean_m: float = 0.0
+    # the points per cell (docs/nislam-error-budget.md, "The axial part, split"):
+    # a key at every pixel holds about four times its frames' points per cell
+    depth_front_mean_m: float = 0.02
     depth_cell_step: int = 2
     # ... but every cell where the sensor noise leaves t_z more uncertain than
     # this on the sampled ones (far, sparse views; docs/nislam-error-budget.md,

@@ -68,3 +68,13 @@ def key_cloud(
     if want == cloud.stride or remake is None:
         return cloud
     return remake(want)
+
+
+def match_cloud(cloud: Cloud, remake: Callable[[int], Cloud] | None, p: NislamParams) -> Cloud:
+    """The cloud Eq. 18's key images (and the map's) are projected from: the
+    key frame at `key_depth_stride` where that is finer than the key's own
+    step (`cloud`), else `cloud`. Its frames keep the key's step."""
+    step = p.key_depth_stride
+    if step <= 0 or step >= cloud.stride or remake is None:
+        return cloud
+    return remake(step)

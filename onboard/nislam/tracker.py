@@ -47,7 +47,7 @@ from onboard.nislam.projection import (
     project,
 )
 from onboard.nislam.results import lost_result, quality_from_psr, restart_result
-from onboard.nislam.sampling import frame_cloud, key_cloud
+from onboard.nislam.sampling import frame_cloud, key_cloud, match_cloud
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +64,7 @@ class NislamTracker:
         self.p = params
         self.shape = (params.grid_height, params.grid_width)
         self._key: Key | None = None
-        # The kept keys, and one more: a new key is made before the map lets
-        # the least recently used one go.
+        # The kept keys and one more: a new key is made before the map lets one go.
         self._store = KeyStore(self.shape, max(params.map_keyframes, 1) + 1)
         self._map: KeyframeMap[Key] = KeyframeMap(
             params.map_keyframes, on_evict=lambda key: self._store.give_back(key.slot))
@@ -75,9 +74,8 @@ class NislamTracker:
         self._lost = False
         self._last_trusted_p: np.ndarray | None = None
         self._frame_count = 0
-        self._calib = OffsetCalibration(
-            params.time_offset_forget, params.time_offset_max_s, params.time_offset_s
-        )
+        self._calib = OffsetCalibration(params.time_offset_forget, params.time_offset_max_s,
+                                        params.time_offset_s)
         self._deferred = Deferred()  # steps 5 and 6, for after the pose (deferred.py)
         self._reused_after_pose: int | None = None  # the kept key re-used after the last pose
         # A cell's depth: the mean of its front surface's points (kernels.zbuffer_project)
@@ -443,16 +441,18 @@ class NislamTracker:
             self.intr.height / self.intr.width,
         )
         cloud = key_cloud(prev.cloud, prev.remake, res, self.intr.fx, p)
+        fine = match_cloud(cloud, prev.remake, p)  # Eq. 18's and the map's (key_depth_stride)
         slot = self._store.take()
-        # hand_over is False only for the Eq. 17 key, made after the pose already.
-        colour_later = hand_over
-        img = slot.hold(project(cloud, np.eye(3), self.shape, res, with_colour=not colour_later,
-                                front=self._front))
+        colour_later = hand_over  # False only for the Eq. 17 key, made after the pose already
+        fine_img = project(fine, np.eye(3), self.shape, res, with_colour=not colour_later,
+                           front=self._front)
+        # Its own projection (what its frames look like) trains the filter and the layers.
+        own = fine_img if fine is cloud else project(cloud, np.eye(3), self.shape, res, front=self._front)
+        img = slot.hold(own, fine_img)
         if colour_later:  # the same projection's colour: a third of the key's making
             self._deferred.add(slot.bgr, lambda: np.copyto(slot.bgr, project(
-                cloud, np.eye(3), self.shape, res, with_colour=True).bgr))
-        filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells,
-                                       slot.spectra)
+                fine, np.eye(3), self.shape, res, with_colour=True).bgr))
+        filt = KernelCorrelationFilter(self.shape, p.kernel_sigma, p.lam, p.label_sigma_cells, slot.spectra)
         filt.train(whiten(img.gray, img.mask))
         layers = RotationResidual.train(img, p) if p.calibrate_time_offset else None
         self._key = Key(
@@ -465,7 +465,7 @@ class NislamTracker:
             slot=slot,
             layers=layers,
             r_geom=prev.r_geom,
-            stride=cloud.stride,
+            stride=cloud.stride, as_projected=p.key_depth_stride > 0,
         )
         self._next_key_id += 1
         if self.p.map_keyframes > 0:
