@@ -28,7 +28,8 @@ class NislamParams:
     # keys and the calibration do not change. At every 2nd pixel a far key
     # holds a point in one cell of two to four and Eq. 18 met the frame's
     # points in few cells (docs/nislam-error-budget.md, "A key's depth from
-    # every pixel"); 0 = the key's step.
+    # every pixel"). 0: the paper's Eq. 18, against the key's own step refined
+    # by its frames (Eq. 19).
     key_depth_stride: int = 1
     kernel_sigma: float = 0.2
     lam: float = 0.1
