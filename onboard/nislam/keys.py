@@ -46,11 +46,10 @@ class KeySlot:
         return cls(grid(), grid(), grid(), resident(np.empty((h, w, 3), np.uint8)), grid(),
                    grid(), grid(), grid(), grid(), grid(), (grid(), grid()))
 
-    def hold(self, img: AxonometricImage, fine: AxonometricImage | None = None) -> AxonometricImage:
-        """`img` copied into this slot, and `fine` (the key frame at a finer
-        pixel step; None: `img`): Eq. 18's images, the refined ones' start and
-        the map's colour."""
-        fine = img if fine is None else fine
+    def hold(self, img: AxonometricImage, fine: AxonometricImage) -> AxonometricImage:
+        """`img` copied into this slot, and `fine` (the key frame at
+        `key_depth_stride`, or `img` itself): Eq. 18's images, the refined
+        ones' start and the map's colour."""
         np.copyto(self.gray, img.gray)
         np.copyto(self.depth_m, img.depth_m)
         np.copyto(self.mask, img.mask)
